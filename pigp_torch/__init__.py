@@ -1,0 +1,21 @@
+"""pigp-torch: physics-informed Gaussian-process Bayesian optimization for particle accelerators.
+
+The package follows the method's chain (see DESIGN.md): ``simulation`` (SPEAR3-like coupling
+model) -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision matrix) -> ``kernels``
+and ``models`` (GPs) -> ``optimizers`` (ask/tell) -> ``optimize`` (the loop).
+
+Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a
+multi-threaded OpenBLAS on a busy machine, set ``OPENBLAS_NUM_THREADS=1`` before importing numpy
+(the ``pigp`` command and the test suite do) — it is up to 10x faster.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("pigp-torch")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+    __version__ = "0.0.0+unknown"
+
+from pigp_torch.loop import optimize
+
+__all__ = ["__version__", "optimize"]
