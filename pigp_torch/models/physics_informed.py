@@ -1,0 +1,102 @@
+r"""The physics-informed GP: kernel, mean and noise all fixed by a :class:`PhysicsPrior`."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from botorch import settings as botorch_settings
+from botorch.models import SingleTaskGP
+from gpytorch.kernels import ScaleKernel
+from gpytorch.means import ConstantMean
+
+from pigp_torch.kernels import FullPrecisionRBFKernel, FullPrecisionRQKernel
+from pigp_torch.models._data import training_data
+from pigp_torch.prior import PhysicsPrior
+
+#: Kernel families selectable by name.
+KERNELS = {"rbf": FullPrecisionRBFKernel, "rq": FullPrecisionRQKernel}
+
+
+def physics_informed_gp(
+    X,
+    Y,
+    prior: PhysicsPrior,
+    *,
+    kernel: str = "rbf",
+    mean: str | float = "f_inf",
+    rq_alpha: float = 0.5,
+) -> SingleTaskGP:
+    r"""Build the physics-informed GP (PI-GP) conditioned on data; nothing is fitted.
+
+    .. math::
+        y = g(\mathbf x) + \varepsilon, \quad g \sim \mathcal{GP}\!\left(m,\;
+        \sigma_f^2\, k_\Sigma(\mathbf x, \mathbf x')\right), \quad
+        \varepsilon \sim \mathcal N(0, \sigma_n^2),
+
+    with :math:`k_\Sigma` = :class:`~pigp_torch.kernels.FullPrecisionRBFKernel`
+    (:math:`\exp(-\frac12 \delta^\top \Sigma \delta)`) or, with ``kernel="rq"``,
+    :class:`~pigp_torch.kernels.FullPrecisionRQKernel` (:math:`(1 + q/2\alpha)^{-\alpha}`),
+    :math:`\Sigma` = ``prior.precision``, :math:`\sigma_f^2` = ``prior.amplitude``,
+    :math:`\sigma_n` = ``prior.noise`` and :math:`m` the constant prior mean. The posterior is
+    the textbook one,
+    :math:`\mu_* = m + K_{*}^\top (K + \sigma_n^2 I)^{-1} (\mathbf y - m)`.
+
+    Every hyperparameter is frozen (``requires_grad=False``): the model is meant to be used as is,
+    not passed to ``fit_gpytorch_mll``. Inputs are raw knob values in the prior's units (no input
+    transform) and outputs raw objective values (no outcome transform). The model is returned in
+    eval mode.
+
+    Args:
+        X: ``n x d`` knob settings (``d = prior.dim``).
+        Y: ``n`` or ``n x 1`` observed objective values.
+        prior: the physics prior.
+        kernel: ``"rbf"`` (the paper's kernel) or ``"rq"`` (heavy-tailed variant).
+        mean: ``"f_inf"`` (prior mean = ``prior.f_inf``, as in the paper), ``"zero"``, or a float.
+        rq_alpha: :math:`\alpha` of the RQ kernel (ignored for ``"rbf"``).
+
+    Returns:
+        A botorch :class:`~botorch.models.SingleTaskGP` in eval mode.
+
+    Raises:
+        ValueError: wrong shapes or non-finite data, unknown ``kernel`` or ``mean``.
+    """
+    if not isinstance(prior, PhysicsPrior):
+        raise ValueError(f"prior must be a PhysicsPrior, got {type(prior).__name__}")
+    X, Y = training_data(X, Y, prior.dim)
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
+    if isinstance(mean, str):
+        if mean not in ("f_inf", "zero"):
+            raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}')
+        mean_value = prior.f_inf if mean == "f_inf" else 0.0
+    else:
+        mean_value = float(mean)
+        if not math.isfinite(mean_value):
+            raise ValueError(f"mean must be finite, got {mean_value}")
+
+    if kernel == "rq":
+        base = FullPrecisionRQKernel(prior.precision, alpha=rq_alpha)
+    else:
+        base = FullPrecisionRBFKernel(prior.precision)
+    covar_module = ScaleKernel(base).to(X)
+    # set from float64 tensors: gpytorch's setters would round Python floats through float32
+    covar_module.outputscale = torch.tensor(prior.amplitude, dtype=X.dtype)
+    mean_module = ConstantMean().to(X)
+    mean_module.constant = torch.tensor(mean_value, dtype=X.dtype)
+    train_Yvar = torch.full_like(Y, prior.noise**2)
+
+    # raw knob units and raw objective values are intended: skip botorch's scaling warnings
+    with botorch_settings.validate_input_scaling(False):
+        model = SingleTaskGP(
+            X,
+            Y,
+            train_Yvar=train_Yvar,
+            covar_module=covar_module,
+            mean_module=mean_module,
+            outcome_transform=None,
+            input_transform=None,
+        )
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model.eval()
