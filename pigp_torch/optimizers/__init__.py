@@ -1,0 +1,15 @@
+"""Ask/tell optimizers: Bayesian optimization, Nelder–Mead, RCDS; ``OPTIMIZERS`` by name."""
+
+from pigp_torch.optimizers.base import AskTellOptimizer, check_bounds
+from pigp_torch.optimizers.bayesopt import BayesOpt
+from pigp_torch.optimizers.nelder_mead import NelderMead
+from pigp_torch.optimizers.rcds import RCDS
+
+#: Registry used by the CLI and configuration files.
+OPTIMIZERS = {
+    BayesOpt.name: BayesOpt,
+    NelderMead.name: NelderMead,
+    RCDS.name: RCDS,
+}
+
+__all__ = ["OPTIMIZERS", "RCDS", "AskTellOptimizer", "BayesOpt", "NelderMead", "check_bounds"]
