@@ -1,0 +1,19 @@
+"""Machines behind one interface: set knobs, read the objective, get the current knobs."""
+
+from pigp_torch.machine.base import (
+    GuardedMachine,
+    Machine,
+    check_setting,
+    max_step_tensor,
+    ramp,
+)
+from pigp_torch.machine.simulated import SimulatedMachine
+
+__all__ = [
+    "GuardedMachine",
+    "Machine",
+    "SimulatedMachine",
+    "check_setting",
+    "max_step_tensor",
+    "ramp",
+]
