@@ -1,0 +1,41 @@
+"""The "spear3-13" benchmark: methods x simulated machines, noise-free scores, summary, figures."""
+
+from pigp_torch.benchmark.figures import plot_prior_mean, plot_runs
+from pigp_torch.benchmark.methods import (
+    BO_DEFAULTS,
+    DEFAULT_BUDGETS,
+    METHODS,
+    MethodSpec,
+    RunContext,
+    machine_archive,
+)
+from pigp_torch.benchmark.protocol import (
+    NOISE,
+    machine_optimum,
+    model_prior,
+    run_benchmark,
+    run_one,
+    run_seed,
+    score_run,
+)
+from pigp_torch.benchmark.scoring import run_scores, summarize
+
+__all__ = [
+    "BO_DEFAULTS",
+    "DEFAULT_BUDGETS",
+    "METHODS",
+    "NOISE",
+    "MethodSpec",
+    "RunContext",
+    "machine_archive",
+    "machine_optimum",
+    "model_prior",
+    "plot_prior_mean",
+    "plot_runs",
+    "run_benchmark",
+    "run_one",
+    "run_scores",
+    "run_seed",
+    "score_run",
+    "summarize",
+]

@@ -1,0 +1,231 @@
+r"""The "spear3-13" benchmark protocol (DESIGN.md §5): runs methods on simulated machines.
+
+* Machine ``s``: ``Spear3Coupling(error_seed=s)`` read through a
+  :class:`~pigp_torch.machine.SimulatedMachine` with i.i.d. :math:`\mathcal N(0, 0.04^2)` noise;
+  every run starts at all skews zero.
+* Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
+  with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors).
+* Score: the noise-free loss rate :math:`f` at every evaluated setting, the start value
+  :math:`f_0 = f(0)`, the machine's true optimum :math:`f^*` (multi-start gradient search on the
+  differentiable model, :meth:`~pigp_torch.simulation.Spear3Coupling.optimum`), and the gain
+  fraction of the best setting evaluated so far,
+
+  .. math:: g_n = \frac{\max_{k \le n} f(x_k) - f_0}{f^* - f_0}.
+
+Seeds. The machine's noise stream is seeded by the machine seed alone (common random numbers:
+every method sees the same noise sequence on a machine); the optimizer (and, for ML-II, the
+archive) by a stable hash of ``(method name, machine seed)``. Runs are independent, so a process
+pool gives the same table as a serial loop.
+"""
+
+from __future__ import annotations
+
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+
+import pandas as pd
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.benchmark.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
+from pigp_torch.loop import optimize
+from pigp_torch.machine import SimulatedMachine
+from pigp_torch.prior import PhysicsPrior, prior_from_model
+from pigp_torch.simulation import Spear3Coupling
+
+#: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
+NOISE = 0.04
+#: Score columns added to the loop's table, in order.
+SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
+
+_OPTIMA: dict[tuple[int, int], float] = {}
+
+
+def run_seed(method: str, machine_seed: int) -> int:
+    """Stable 31-bit seed of one run from the method name and the machine seed."""
+    return zlib.crc32(f"{method}|{int(machine_seed)}".encode()) & 0x7FFFFFFF
+
+
+def machine_optimum(machine_seed: int, n_starts: int = 8) -> float:
+    """:math:`f^*` of machine ``machine_seed`` from ``n_starts`` Sobol starts of L-BFGS-B
+    (:meth:`~pigp_torch.simulation.Spear3Coupling.optimum`); cached per process, ~1 s a start."""
+    key = (int(machine_seed), int(n_starts))
+    if key not in _OPTIMA:
+        _OPTIMA[key] = float(Spear3Coupling(key[0]).optimum(n_starts=key[1])[1])
+    return _OPTIMA[key]
+
+
+def model_prior(
+    model_seed: int = 0, *, noise: float = NOISE, n_starts: int = 16, seed: int = 0
+) -> PhysicsPrior:
+    """The physics prior from the model ring ``Spear3Coupling(model_seed)`` (~3 s)."""
+    sim = Spear3Coupling(int(model_seed))
+    return prior_from_model(
+        sim.loss_rate,
+        sim.bounds,
+        f_inf=sim.loss_background,
+        noise=noise,
+        n_starts=n_starts,
+        seed=seed,
+        knob_names=sim.knob_names,
+        provenance={"model": f"Spear3Coupling(error_seed={int(model_seed)})"},
+    )
+
+
+def score_run(table: pd.DataFrame, sim: Spear3Coupling, f_star: float) -> pd.DataFrame:
+    r"""Add ``f_true``, ``best_f_true``, ``f0``, ``f_star``, ``gain_fraction`` to one run's table.
+
+    ``f_true`` is the noise-free loss rate at the logged knobs (rows in step order),
+    ``best_f_true`` its running maximum, ``f0`` the noise-free value with skews off.
+    """
+    X = torch.as_tensor(table[list(sim.knob_names)].to_numpy(), dtype=DTYPE)
+    with torch.no_grad():
+        f = sim.loss_rate(X)
+        f0 = float(sim.loss_rate(torch.zeros(1, sim.dim, dtype=DTYPE))[0])
+    out = table.copy()
+    out["f_true"] = f.numpy()
+    out["best_f_true"] = out["f_true"].cummax()
+    out["f0"] = f0
+    out["f_star"] = float(f_star)
+    out["gain_fraction"] = (out["best_f_true"] - f0) / (float(f_star) - f0)
+    return out
+
+
+def run_one(
+    spec: MethodSpec,
+    machine_seed: int,
+    prior: PhysicsPrior,
+    *,
+    budget: int,
+    noise: float = NOISE,
+    archive_size: int = 300,
+    optimum_starts: int = 8,
+) -> pd.DataFrame:
+    """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows)."""
+    sim = Spear3Coupling(int(machine_seed))
+    machine = SimulatedMachine(sim, noise=noise, seed=int(machine_seed))
+    ctx = RunContext(
+        machine=machine,
+        prior=prior,
+        seed=run_seed(spec.name, machine_seed),
+        noise=float(noise),
+        archive_size=int(archive_size),
+    )
+    optimizer = spec.build(ctx)
+    x0 = torch.zeros(sim.dim, dtype=DTYPE)
+    table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
+    table.insert(1, "machine_seed", int(machine_seed))
+    return score_run(table, sim, machine_optimum(machine_seed, optimum_starts))
+
+
+def _run_job(args) -> pd.DataFrame:
+    spec, seed, prior, kwargs = args
+    torch.set_num_threads(1)
+    return run_one(spec, seed, prior, **kwargs)
+
+
+def run_benchmark(
+    methods,
+    machine_seeds,
+    *,
+    model_seed: int = 0,
+    budgets: dict[str, int] | None = None,
+    noise: float = NOISE,
+    archive_size: int = 300,
+    progress: bool = True,
+    n_workers: int = 1,
+    prior: PhysicsPrior | None = None,
+    optimum_starts: int = 8,
+) -> pd.DataFrame:
+    r"""Run every method on every machine seed; one tidy row per evaluation.
+
+    Args:
+        methods: names from :data:`~pigp_torch.benchmark.methods.METHODS` and/or
+            :class:`~pigp_torch.benchmark.methods.MethodSpec` objects.
+        machine_seeds: error seeds of the machines (integers, distinct).
+        model_seed: error seed of the model ring the prior is computed from; must not be a
+            machine seed.
+        budgets: evaluations per budget class, default ``{"gp": 100, "direct": 300}``
+            (start point included).
+        noise: measurement noise standard deviation (mA/min); also the prior's :math:`\sigma_n`.
+        archive_size: archive readings for data-informed methods (ML-II).
+        progress: tqdm bar over runs.
+        n_workers: processes (``>1``: a ``ProcessPoolExecutor``; same numbers as serial).
+        prior: use this prior instead of computing it from ``model_seed`` (it must come from a
+            model, not from a machine under test).
+        optimum_starts: starts of the search for each machine's :math:`f^*`.
+
+    Returns:
+        DataFrame with columns ``method, machine_seed, step, <knobs>, y, ask_time_s,
+        eval_time_s, f_true, best_f_true, f0, f_star, gain_fraction``, ordered by method (as
+        given), machine seed (as given), step. ``step`` 0 is the start point (skews off), so
+        evaluation number = ``step + 1``.
+
+    Raises:
+        ValueError: ``model_seed`` among ``machine_seeds``, duplicate seeds, unknown methods or
+            budget classes, bad budgets/noise/worker counts.
+    """
+    specs = resolve_methods(methods)
+    seeds = [int(s) for s in machine_seeds]
+    if not seeds:
+        raise ValueError("no machine seeds given")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"duplicate machine seeds in {seeds}")
+    if int(model_seed) in seeds:
+        raise ValueError(
+            f"model_seed {model_seed} is also a machine seed: the prior must come from a "
+            "different ring than the machines it is tested on"
+        )
+    budgets = {**DEFAULT_BUDGETS, **(budgets or {})}
+    for spec in specs:
+        if spec.budget not in budgets:
+            raise ValueError(f"method {spec.name!r} needs budget class {spec.budget!r}")
+        b = budgets[spec.budget]
+        if int(b) != b or b < 1:
+            raise ValueError(f"budget {spec.budget!r} must be a positive integer, got {b}")
+    if not (float(noise) > 0 and float(noise) < float("inf")):
+        raise ValueError(f"noise must be positive and finite, got {noise}")
+    if int(n_workers) < 1:
+        raise ValueError(f"n_workers must be >= 1, got {n_workers}")
+    if prior is None:
+        prior = model_prior(model_seed, noise=noise)
+
+    jobs = [
+        (
+            spec,
+            seed,
+            prior,
+            {
+                "budget": int(budgets[spec.budget]),
+                "noise": float(noise),
+                "archive_size": int(archive_size),
+                "optimum_starts": int(optimum_starts),
+            },
+        )
+        for spec in specs
+        for seed in seeds
+    ]
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(jobs), desc="benchmark runs")
+    tables = []
+    try:
+        if int(n_workers) == 1:
+            for job in jobs:
+                tables.append(_run_job(job))
+                if bar is not None:
+                    bar.update(1)
+        else:
+            with ProcessPoolExecutor(max_workers=int(n_workers)) as pool:
+                for table in pool.map(_run_job, jobs):  # results in job order
+                    tables.append(table)
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    df = pd.concat(tables, ignore_index=True)
+    first = ["method", "machine_seed", "step"]
+    return df[first + [c for c in df.columns if c not in first]]

@@ -1,0 +1,101 @@
+r"""Scores of benchmark runs: steps-to-fraction, gain after n evaluations, per-method summary.
+
+All scores use the NOISE-FREE loss rate ``f_true`` of the evaluated settings. A run is the rows of
+one ``(method, machine_seed)`` pair; evaluation number :math:`n` = ``step + 1`` (the start point
+is evaluation 1).
+
+* Steps-to-:math:`p`: the first :math:`n` with :math:`f(x_n) \ge f_0 + p (f^* - f_0)`. A run that
+  never reaches it scores ``budget + 1`` (its number of evaluations + 1), so medians and quartiles
+  stay defined and an unreached run ranks behind every reached one; ``reached_95`` says which.
+* Gain after :math:`n`: the ``gain_fraction`` after :math:`n` evaluations (NaN if the run is
+  shorter).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+RUN_KEYS = ["method", "machine_seed"]
+_NEEDED = ("method", "machine_seed", "step", "f_true", "f0", "f_star", "gain_fraction")
+
+
+def _check(df: pd.DataFrame) -> None:
+    missing = [c for c in _NEEDED if c not in df.columns]
+    if missing:
+        raise ValueError(f"benchmark table lacks columns {missing}")
+    if df.empty:
+        raise ValueError("benchmark table is empty")
+
+
+def run_scores(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.DataFrame:
+    r"""One row per run: steps-to-``fraction``, whether reached, gain after ``at``, final best.
+
+    Args:
+        df: table of :func:`~pigp_torch.benchmark.run_benchmark` (or with its score columns).
+        fraction: :math:`p` of steps-to-:math:`p`, in (0, 1].
+        at: evaluation counts for ``gain_<n>`` columns.
+
+    Returns:
+        DataFrame with columns ``method, machine_seed, budget, steps_to_<pct>, reached_<pct>,
+        gain_<n>... , best_f_true`` (``<pct>`` = ``round(100 fraction)``).
+    """
+    _check(df)
+    if not 0.0 < float(fraction) <= 1.0:
+        raise ValueError(f"fraction must lie in (0, 1], got {fraction}")
+    pct = round(100 * float(fraction))
+    rows = []
+    for (method, seed), run in df.groupby(RUN_KEYS, sort=False):
+        run = run.sort_values("step")
+        n = run["step"].to_numpy() + 1
+        f0, f_star = float(run["f0"].iloc[0]), float(run["f_star"].iloc[0])
+        target = f0 + float(fraction) * (f_star - f0)
+        hit = np.flatnonzero(run["f_true"].to_numpy() >= target)
+        budget = int(n.max())
+        row = {
+            "method": method,
+            "machine_seed": seed,
+            "budget": budget,
+            f"steps_to_{pct}": float(n[hit[0]]) if hit.size else float(budget + 1),
+            f"reached_{pct}": bool(hit.size),
+        }
+        gain = run["gain_fraction"].to_numpy()
+        for k in at:
+            idx = np.flatnonzero(n == int(k))
+            row[f"gain_{int(k)}"] = float(gain[idx[0]]) if idx.size else float("nan")
+        row["best_f_true"] = float(run["f_true"].max())
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def summarize(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.DataFrame:
+    r"""Per method: median and interquartile range over runs of every score.
+
+    For each score ``s`` of :func:`run_scores` (``steps_to_95``, ``gain_40``, ``gain_100``,
+    ``best_f_true``) the columns ``s_median``, ``s_q25``, ``s_q75`` (linear-interpolated
+    quantiles, NaNs skipped); plus ``n_runs``, ``n_reached_95`` and ``budget`` (max over runs).
+
+    Returns:
+        DataFrame indexed by method (in order of first appearance).
+    """
+    scores = run_scores(df, fraction=fraction, at=at)
+    pct = round(100 * float(fraction))
+    cols = [f"steps_to_{pct}"] + [f"gain_{int(k)}" for k in at] + ["best_f_true"]
+    out = []
+    for method, g in scores.groupby("method", sort=False):
+        row = {
+            "method": method,
+            "n_runs": len(g),
+            f"n_reached_{pct}": int(g[f"reached_{pct}"].sum()),
+            "budget": int(g["budget"].max()),
+        }
+        for c in cols:
+            v = g[c].dropna()
+            q = v.quantile([0.25, 0.5, 0.75]) if len(v) else pd.Series([np.nan] * 3)
+            row[f"{c}_median"], row[f"{c}_q25"], row[f"{c}_q75"] = (
+                float(q.iloc[1]),
+                float(q.iloc[0]),
+                float(q.iloc[2]),
+            )
+        out.append(row)
+    return pd.DataFrame(out).set_index("method")

@@ -1,0 +1,122 @@
+"""Tests of the benchmark protocol: seeds, table layout, noise-free scores, determinism."""
+
+import pandas as pd
+import pytest
+import torch
+
+from pigp_torch.benchmark import METHODS, machine_archive, machine_optimum, run_benchmark, run_seed
+from pigp_torch.benchmark.methods import resolve_methods
+from pigp_torch.machine import SimulatedMachine
+from pigp_torch.simulation import Spear3Coupling
+from tests.benchmark.conftest import BUDGETS, MODEL_SEED, OPTIMUM_STARTS, SEEDS, tiny_methods
+
+TIMING = ["ask_time_s", "eval_time_s"]
+
+
+def test_model_seed_among_machine_seeds_raises():
+    """The prior must come from a ring that is not under test: model_seed in seeds is refused."""
+    with pytest.raises(ValueError, match="model_seed 2 is also a machine seed"):
+        run_benchmark(["pigp"], [1, 2, 3], model_seed=2, progress=False)
+    with pytest.raises(ValueError, match="duplicate machine seeds"):
+        run_benchmark(["pigp"], [1, 1], progress=False)
+    with pytest.raises(ValueError, match="unknown method"):
+        run_benchmark(["no-such-method"], [1], progress=False)
+
+
+def test_registry_and_spec_options():
+    """The registry holds the five protocol methods; with_options overrides without mutating."""
+    assert set(METHODS) >= {"pigp", "pigp-zero-mean", "ml2", "nelder-mead", "rcds"}
+    spec = METHODS["pigp"].with_options(name="pigp-rq", kernel="rq", step_limit=0.1)
+    assert (spec.name, dict(spec.options)) == ("pigp-rq", {"kernel": "rq", "step_limit": 0.1})
+    assert dict(METHODS["pigp"].options) == {}
+    assert METHODS["pigp-zero-mean"].options == {"mean": "zero"}
+    assert (METHODS["ml2"].budget, METHODS["rcds"].budget) == ("gp", "direct")
+    with pytest.raises(ValueError, match="duplicate method names"):
+        resolve_methods(["pigp", METHODS["pigp"]])
+
+
+def test_table_layout_one_row_per_evaluation(tiny_table):
+    """One row per evaluation per run, steps 0..budget-1 in order, start at all skews zero."""
+    names = Spear3Coupling(1).knob_names
+    expected = ["method", "machine_seed", "step", *names, "y", *TIMING]
+    expected += ["f_true", "best_f_true", "f0", "f_star", "gain_fraction"]
+    assert list(tiny_table.columns) == expected
+    counts = tiny_table.groupby(["method", "machine_seed"], sort=False).size()
+    budgets = [BUDGETS["gp"]] * 6 + [BUDGETS["direct"]] * 4
+    assert counts.tolist() == budgets
+    assert [m for m, _ in counts.index[::2]] == [s.name for s in tiny_methods()]
+    start = tiny_table[tiny_table["step"] == 0]
+    assert (start[names].to_numpy() == 0.0).all()
+    for _, run in tiny_table.groupby(["method", "machine_seed"]):
+        assert run["step"].tolist() == list(range(len(run)))
+
+
+def test_scores_are_noise_free(tiny_table):
+    """f_true equals Spear3Coupling.loss_rate at the logged knobs, f0 the skews-off value, and
+    gain_fraction the best-so-far formula; y differs from f_true by the 0.04 noise."""
+    for seed in SEEDS:
+        sim = Spear3Coupling(seed)
+        rows = tiny_table[tiny_table["machine_seed"] == seed]
+        X = torch.tensor(rows[sim.knob_names].to_numpy(), dtype=torch.float64)
+        f = sim.loss_rate(X).detach().numpy()
+        assert rows["f_true"].to_numpy() == pytest.approx(f, rel=1e-12)
+        f0 = float(sim.loss_rate(torch.zeros(1, 13, dtype=torch.float64))[0])
+        assert rows["f0"].unique().tolist() == pytest.approx([f0], rel=1e-12)
+        assert 0.45 < f0 < 0.55
+        f_star = rows["f_star"].iloc[0]
+        assert f_star == machine_optimum(seed, OPTIMUM_STARTS)
+        assert f_star > rows["f_true"].max() > f0
+        best = rows.groupby("method")["f_true"].cummax()
+        assert rows["gain_fraction"].to_numpy() == pytest.approx((best - f0) / (f_star - f0))
+    resid = (tiny_table["y"] - tiny_table["f_true"]).to_numpy()
+    assert 0.02 < resid.std() < 0.06
+
+
+def test_same_seeds_give_identical_table(tiny_table, tiny_prior):
+    """A second run with the same seeds reproduces the table exactly (timings aside)."""
+    again = run_benchmark(
+        tiny_methods(),
+        SEEDS,
+        model_seed=MODEL_SEED,
+        budgets=BUDGETS,
+        archive_size=40,
+        progress=False,
+        prior=tiny_prior,
+        optimum_starts=OPTIMUM_STARTS,
+    )
+    pd.testing.assert_frame_equal(tiny_table.drop(columns=TIMING), again.drop(columns=TIMING))
+
+
+def test_run_seeds_differ_between_methods_and_machines():
+    """Each run gets its own stable seed from (method, machine seed)."""
+    seeds = {run_seed(m, s) for m in ("pigp", "ml2", "rcds") for s in (1, 2, 3)}
+    assert len(seeds) == 9
+    assert run_seed("pigp", 1) == run_seed("pigp", 1)
+
+
+def test_machine_archive_is_near_operating_point():
+    """Archive settings have the requested spread around zero (clipped) and 0.04 noise."""
+    machine = SimulatedMachine(Spear3Coupling(1), noise=0.04, seed=0)
+    X, Y = machine_archive(machine, 400, spread=0.2, seed=3)
+    assert X.shape == (400, 13) and Y.shape == (400,)
+    assert X.std().item() == pytest.approx(0.2 * 0.015, rel=0.1)
+    assert X.abs().max().item() <= 0.015
+    assert (Y - machine.true_value(X)).std().item() == pytest.approx(0.04, rel=0.15)
+    assert machine.n_reads == 0
+
+
+@pytest.mark.slow
+def test_process_pool_gives_the_same_numbers(tiny_table, tiny_prior):
+    """n_workers=2 reproduces the serial table (each run is seeded on its own)."""
+    pooled = run_benchmark(
+        tiny_methods(),
+        SEEDS,
+        model_seed=MODEL_SEED,
+        budgets=BUDGETS,
+        archive_size=40,
+        progress=False,
+        prior=tiny_prior,
+        optimum_starts=OPTIMUM_STARTS,
+        n_workers=2,
+    )
+    pd.testing.assert_frame_equal(tiny_table.drop(columns=TIMING), pooled.drop(columns=TIMING))

@@ -1,0 +1,80 @@
+"""Tests of the benchmark scores on hand-made tables with closed-form answers."""
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pigp_torch.benchmark import run_scores, summarize
+
+
+def _run(method, seed, f_true, f0=0.5, f_star=1.5):
+    f = np.asarray(f_true, dtype=float)
+    best = np.maximum.accumulate(f)
+    return pd.DataFrame(
+        {
+            "method": method,
+            "machine_seed": seed,
+            "step": np.arange(f.size),
+            "f_true": f,
+            "f0": f0,
+            "f_star": f_star,
+            "gain_fraction": (best - f0) / (f_star - f0),
+        }
+    )
+
+
+@pytest.fixture
+def table():
+    # target f0 + 0.95 (f* - f0) = 1.45: run 1 reaches it at step 3 (evaluation 4), run 2 never
+    return pd.concat(
+        [
+            _run("a", 1, [0.5, 0.9, 1.2, 1.46, 1.44]),
+            _run("a", 2, [0.5, 0.6, 0.55, 0.7, 1.0]),
+            _run("b", 1, [0.5, 1.5, 0.4]),
+        ],
+        ignore_index=True,
+    )
+
+
+def test_steps_to_95_first_hit_and_unreached_is_budget_plus_one(table):
+    """Steps-to-95 % = 1-based evaluation of the first hit; an unreached run scores budget+1."""
+    s = run_scores(table, at=(2, 4)).set_index(["method", "machine_seed"])
+    assert s.loc[("a", 1), "steps_to_95"] == 4.0
+    assert s.loc[("a", 2), "steps_to_95"] == 6.0
+    assert s.loc[("b", 1), "steps_to_95"] == 2.0
+    assert s["reached_95"].tolist() == [True, False, True]
+    assert s.loc[("a", 1), "best_f_true"] == 1.46
+
+
+def test_gain_after_n_evaluations_uses_best_so_far(table):
+    """Gain after n evaluations = (max f_true of the first n - f0) / (f* - f0); NaN if short."""
+    s = run_scores(table, at=(2, 4)).set_index(["method", "machine_seed"])
+    assert s.loc[("a", 1), "gain_2"] == pytest.approx(0.4)
+    assert s.loc[("a", 1), "gain_4"] == pytest.approx(0.96)
+    assert s.loc[("a", 2), "gain_4"] == pytest.approx(0.2)
+    assert s.loc[("b", 1), "gain_2"] == pytest.approx(1.0)
+    assert math.isnan(s.loc[("b", 1), "gain_4"])
+
+
+def test_summary_median_and_iqr(table):
+    """The summary gives median and linear-interpolated quartiles per method and run counts."""
+    out = summarize(table, at=(2, 4))
+    a = out.loc["a"]
+    assert (a["n_runs"], a["n_reached_95"], a["budget"]) == (2, 1, 5)
+    assert (a["steps_to_95_median"], a["steps_to_95_q25"], a["steps_to_95_q75"]) == (5, 4.5, 5.5)
+    assert a["gain_4_median"] == pytest.approx(0.58)
+    assert out.loc["b", "gain_2_median"] == pytest.approx(1.0)
+    assert math.isnan(out.loc["b", "gain_4_median"])
+    assert list(out.index) == ["a", "b"]
+
+
+def test_other_fraction_and_bad_inputs(table):
+    """fraction=0.5 moves the target to f0 + 0.5 (f* - f0); bad fraction or columns raise."""
+    s = run_scores(table, fraction=0.5, at=())
+    assert s["steps_to_50"].tolist() == [3.0, 5.0, 2.0]
+    with pytest.raises(ValueError, match="fraction"):
+        run_scores(table, fraction=1.5)
+    with pytest.raises(ValueError, match="lacks columns"):
+        summarize(table.drop(columns="f_star"))
