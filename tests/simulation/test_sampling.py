@@ -9,7 +9,7 @@ from pigp_torch.simulation.sampling import sampling_design
 
 
 def test_design_fractions_and_bounds():
-    """40 % Sobol over the box, the rest in clouds around the centre, all inside the bounds."""
+    """40 % Sobol over the box, the rest in Gaussian draws around the centre, all in the bounds."""
     b = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 4.0]], dtype=torch.float64)
     c = torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64)
     X = sampling_design(1000, b, c, seed=1)

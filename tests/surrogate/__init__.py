@@ -1,0 +1,1 @@
+"""Tests of pigp_torch.surrogate and surrogate_training (a package: unique module names)."""

@@ -1,0 +1,52 @@
+"""The pigp command: help texts, train-surrogate -> build-prior on tiny data, benchmark output."""
+
+import json
+
+import pytest
+import torch
+
+from pigp_torch.cli import build_parser, main
+from pigp_torch.prior import PhysicsPrior, log_excess_hessian
+from pigp_torch.surrogate import load_surrogate
+
+
+def test_every_command_documents_itself(capsys):
+    """`pigp --help` lists every subcommand and each has its own help text."""
+    parser = build_parser()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--help"])
+    text = capsys.readouterr().out
+    for cmd in ("generate-data", "train-surrogate", "build-prior", "bench"):
+        assert cmd in text
+        with pytest.raises(SystemExit):
+            parser.parse_args([cmd, "--help"])
+        assert "usage: pigp" in capsys.readouterr().out
+
+
+def test_data_surrogate_prior_chain(tmp_path, capsys):
+    """generate-data -> train-surrogate -> build-prior: the prior's precision is -H/2 of the
+    surrogate's log-excess at the prior's x0, with provenance back to the model ring."""
+    data, model, prior = tmp_path / "d.npz", tmp_path / "m.pt", tmp_path / "p.json"
+    assert main(["generate-data", "--seed", "3", "--n", "6000", "-o", str(data)]) == 0
+    argv = [str(data), "-o", str(model), "--epochs", "40", "--members", "2", "--quiet"]
+    argv += ["--target", "log_excess"]  # bounded f̂: an under-trained net has no spurious peak
+    assert main(["train-surrogate", *argv]) == 0
+    assert main(["build-prior", str(model), "-o", str(prior), "--starts", "2"]) == 0
+    p = PhysicsPrior.load(prior)
+    surrogate, meta = load_surrogate(model)
+    H, _, _ = log_excess_hessian(surrogate, p.x0, p.f_inf)
+    # precision = -H/2 up to the negative-definite repair the prior reports (tiny net, few data)
+    rel = float(torch.linalg.norm(p.precision + H / 2) / torch.linalg.norm(H / 2))
+    assert rel <= p.provenance["build"]["repair_relative_change"] + 1e-9
+    assert p.knob_names == meta["knob_names"] and p.noise == 0.04
+    assert p.provenance["model_error_seed"] == 3
+    assert "saved prior" in capsys.readouterr().out
+
+
+def test_bench_simulator_json(capsys):
+    """`pigp bench simulator --json` prints one JSON object with throughputs and agreement."""
+    assert main(["bench", "simulator", "--batch", "500", "--n-reference", "1", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["fast"]["cpu"]["samples_per_s"] > 0
+    assert res["speedup_cpu_vs_reference"] > 1
+    assert res["max_rel_diff"]["loss_rate"] < 1e-4
