@@ -188,6 +188,98 @@ def cmd_build_prior(args) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- compare
+def _seed_list(text: str) -> list[int]:
+    """``"1-12"`` or ``"1,3,5"`` or ``"1-4,9"`` -> list of ints."""
+    seeds = []
+    for part in text.split(","):
+        if "-" in part:
+            a, b = (int(v) for v in part.split("-"))
+            seeds.extend(range(a, b + 1))
+        elif part.strip():
+            seeds.append(int(part))
+    return seeds
+
+
+def _write_comparison(df, out: Path, title: str) -> None:
+    from pigp_torch.benchmark import plot_prior_mean, plot_runs, summarize
+
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out / "runs.csv", index=False)
+    summary = summarize(df)
+    summary.to_csv(out / "summary.csv")
+    plot_runs(df, out / "fig2b_runs.png", title=title)
+    files = ["runs.csv", "summary.csv", "fig2b_runs.png"]
+    if {"pigp", "pigp-zero-mean"} <= set(df["method"]):
+        plot_prior_mean(df, out / "fig2c_prior_mean.png")
+        files.append("fig2c_prior_mean.png")
+    with_pd_options = summary.to_string(float_format=lambda v: f"{v:.3g}")
+    print(with_pd_options)
+    print(f"wrote {', '.join(files)} to {out}")
+
+
+def cmd_compare(args) -> int:
+    from pigp_torch.benchmark import run_benchmark
+
+    df = run_benchmark(
+        args.methods,
+        _seed_list(args.seeds),
+        model_seed=args.model_seed,
+        budgets={"gp": args.budget_gp, "direct": args.budget_direct},
+        n_workers=args.workers,
+        progress=True,
+    )
+    _write_comparison(df, args.out, f"spear3-13, model seed {args.model_seed}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- demo
+def cmd_demo(args) -> int:
+    from pigp_torch.benchmark import METHODS, run_one
+    from pigp_torch.prior import prior_from_model
+    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.sampling import generate_dataset
+    from pigp_torch.surrogate import train_ensemble
+
+    if args.model_seed == args.machine_seed:
+        raise ValueError("the model ring and the machine must have different error seeds")
+    out = args.out
+    print(f"[1/4] simulated data of the model ring (error seed {args.model_seed})", flush=True)
+    model_ring = Spear3Coupling(args.model_seed)
+    data = generate_dataset(model_ring, args.n, seed=0, progress=True)
+    print(f"[2/4] surrogate: {args.members} network(s) on {len(data)} samples", flush=True)
+    surrogate, reports = train_ensemble(
+        data, n_members=args.members, target=args.target, progress=True
+    )
+    for r in reports:
+        print(f"      held-out rel. RMSE {100 * r['val_rel_rmse']:.2f} %, "
+              f"near optimum {100 * r['near_opt_rel_rmse']:.2f} %")  # fmt: skip
+    print("[3/4] physics prior: optimum and Hessian of the surrogate", flush=True)
+    prior = prior_from_model(
+        surrogate,
+        model_ring.bounds,
+        f_inf=model_ring.loss_background,
+        noise=0.04,
+        knob_names=model_ring.knob_names,
+        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed})"},
+    )
+    print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
+          f"{prior.f_x0:.3f} mA/min")  # fmt: skip
+    print(f"[4/4] PI-GP vs ML-II on machine error seed {args.machine_seed}, "
+          f"{args.budget} evaluations each", flush=True)  # fmt: skip
+    import pandas as pd
+
+    runs = [
+        run_one(METHODS[name], args.machine_seed, prior, budget=args.budget)
+        for name in ("pigp", "ml2")
+    ]
+    df = pd.concat(runs, ignore_index=True)
+    out.mkdir(parents=True, exist_ok=True)
+    prior.save(out / "prior.json")
+    _write_comparison(df, out, f"demo: machine seed {args.machine_seed}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- bench
 def cmd_bench_simulator(args) -> int:
     import torch
@@ -267,6 +359,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--starts", type=int, default=16, help="multi-start count (default 16)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts")
     p.set_defaults(func=cmd_build_prior)
+
+    p = sub.add_parser(
+        "compare",
+        help="benchmark optimizers on simulated machines (spear3-13 protocol)",
+        description="Run methods x machine error seeds from skews zero with 0.04 mA/min noise, "
+        "the physics prior computed from a different model ring; score every evaluation on the "
+        "noise-free loss rate; write runs.csv, summary.csv and Fig. 2b/2c-style figures.",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["pigp", "pigp-zero-mean", "ml2", "nelder-mead", "rcds"],
+        help="method names (default: pigp pigp-zero-mean ml2 nelder-mead rcds)",
+    )
+    p.add_argument("--seeds", default="1-12", help="machine error seeds, e.g. 1-12 or 1,3,5")
+    p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
+    p.add_argument("--budget-gp", type=int, default=100, help="evaluations for GP methods")
+    p.add_argument("--budget-direct", type=int, default=300, help="for Nelder-Mead and RCDS")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes")
+    p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
+    p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
+        "demo",
+        help="the main job end to end on the embedded simulated ring",
+        description="Simulated data of a model ring -> surrogate -> physics prior -> PI-GP vs "
+        "ML-II on another simulated machine -> table and figure (a few minutes on 2 cores).",
+    )
+    p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
+    p.add_argument("--machine-seed", type=int, default=1, help="error seed of the machine")
+    p.add_argument("--n", type=int, default=100_000, help="simulated samples (default 100000)")
+    p.add_argument("--members", type=int, default=3, help="surrogate networks (default 3)")
+    p.add_argument("--budget", type=int, default=100, help="evaluations per method")
+    p.add_argument(
+        "--target",
+        default=_train_default("target"),
+        help="surrogate target (default inv_sq_excess; log_excess is safer with little data)",
+    )
+    p.add_argument("-o", "--out", type=Path, default=Path("runs/demo"), help="output folder")
+    p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="speed benchmarks (print numbers)")
     bench = p.add_subparsers(dest="bench", required=True)

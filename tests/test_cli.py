@@ -50,3 +50,40 @@ def test_bench_simulator_json(capsys):
     assert res["fast"]["cpu"]["samples_per_s"] > 0
     assert res["speedup_cpu_vs_reference"] > 1
     assert res["max_rel_diff"]["loss_rate"] < 1e-4
+
+
+def test_compare_writes_tables_and_figures(tmp_path, capsys):
+    """`pigp compare` on one machine with tiny budgets writes runs, summary and the figures."""
+    out = tmp_path / "cmp"
+    argv = ["compare", "--methods", "pigp", "pigp-zero-mean", "nelder-mead", "--seeds", "1"]
+    argv += ["--budget-gp", "4", "--budget-direct", "5", "-o", str(out)]
+    assert main(argv) == 0
+    import pandas as pd
+
+    runs = pd.read_csv(out / "runs.csv")
+    assert len(runs) == 4 + 4 + 5
+    assert set(runs["method"]) == {"pigp", "pigp-zero-mean", "nelder-mead"}
+    for name in ("summary.csv", "fig2b_runs.png", "fig2c_prior_mean.png"):
+        assert (out / name).stat().st_size > 0
+    assert "nelder-mead" in capsys.readouterr().out
+
+
+def test_demo_small(tmp_path):
+    """`pigp demo` end to end at toy size: both methods run on the machine, prior saved."""
+    out = tmp_path / "demo"
+    argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
+    assert main([*argv, "-o", str(out)]) == 0
+    import pandas as pd
+
+    runs = pd.read_csv(out / "runs.csv")
+    assert sorted(set(runs["method"])) == ["ml2", "pigp"] and len(runs) == 8
+    assert (runs["machine_seed"] == 1).all()
+    assert PhysicsPrior.load(out / "prior.json").provenance["surrogate_of"].endswith("=0)")
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["demo", "--target"])
+
+
+def test_demo_refuses_same_seed(capsys):
+    """The model ring must differ from the machine (the prior must not know the machine)."""
+    assert main(["demo", "--model-seed", "3", "--machine-seed", "3"]) == 2
+    assert "different error seeds" in capsys.readouterr().err
