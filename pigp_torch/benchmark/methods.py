@@ -18,6 +18,12 @@ Defaults (documented choices):
   settings drawn from :math:`\mathcal N(0, (0.2 \cdot \text{half-range})^2)` per knob around
   skews-off (clipped to the bounds), then refitted online on archive ∪ run data every
   ``refit_every`` steps with a warm start from the previous hyperparameters; noise learned.
+* ``pigp-physics-mean``: the PI-GP kernel and noise with the physics-structured mean
+  :class:`~pigp_torch.models.PhysicsMean` (centre, peak and scale MAP-fitted at every ask,
+  :func:`build_pigp_physics_mean`) and a wider trust box, ``step_limit = 0.6`` (on seeds 1–4 the
+  fitted mean raised the median gain after 40 evaluations from 0.16 to 0.56 at ±0.3 and 0.65 at
+  ±0.6; the plain PI-GP at ±0.6: 0.12). On held-out seeds 5–12 after 100 evaluations: median
+  gain 0.68 vs 0.31 for ``pigp``; no run reaches 95 % of the optimum in 100 evaluations.
 * ``nelder-mead``: adaptive coefficients, ``initial_simplex_size = 0.05`` of each knob's full
   range (= ±0.1 in the normalized units, ~1.5e-3 1/m), restarts when converged.
 * ``rcds``: ``noise = 0.04`` (the machine's), initial ``step = 0.05`` of the knob range,
@@ -26,6 +32,7 @@ Defaults (documented choices):
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -35,7 +42,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.machine import SimulatedMachine
-from pigp_torch.models import ml2_gp, physics_informed_gp
+from pigp_torch.models import PhysicsMean, fit_physics_mean, ml2_gp, physics_informed_gp
 from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.prior import PhysicsPrior
@@ -121,6 +128,67 @@ def build_pigp(ctx: RunContext, *, kernel: str = "rbf", mean="f_inf", **bo_optio
 
     def factory(X, Y):
         return physics_informed_gp(X, Y, prior, kernel=kernel, mean=mean)
+
+    return _bayesopt(ctx, factory, bo_options)
+
+
+def build_pigp_physics_mean(
+    ctx: RunContext,
+    *,
+    kernel: str = "rbf",
+    center_prior: str = "zero",
+    center_std: float = 0.5,
+    log_std: float = 2.0,
+    n_eigen_scales: int = 0,
+    fit_iter: int = 50,
+    **bo_options,
+) -> BayesOpt:
+    r"""PI-GP with the physics-structured mean :class:`~pigp_torch.models.PhysicsMean`.
+
+    Kernel, noise and the mean's shape :math:`\Sigma` come from ``ctx.prior``; the mean's centre
+    :math:`\mu`, peak :math:`A` and scale :math:`s` are MAP-fitted on all run data at every ask
+    (:func:`~pigp_torch.models.fit_physics_mean`, warm-started from the previous fit) with priors
+    :math:`\mu \sim \mathcal N(\mu_0, (\tau h)^2)` per knob (:math:`h` the half-range,
+    :math:`\tau` = ``center_std``), :math:`\log A \sim \mathcal N(\log(f(x_0) - f_\infty),
+    \lambda^2)`, :math:`\log s \sim \mathcal N(0, \lambda^2)` (:math:`\lambda` = ``log_std``).
+
+    Args:
+        ctx: the run context.
+        kernel: ``"rbf"`` or ``"rq"``.
+        center_prior: :math:`\mu_0`: ``"zero"`` (skews off) or ``"x0"`` (the model's optimum).
+        center_std: :math:`\tau`, a fraction of each knob's half-range.
+        log_std: :math:`\lambda`.
+        n_eigen_scales: separate curvature scales along the top eigenvectors of :math:`\Sigma`
+            (:class:`~pigp_torch.models.PhysicsMean`), with the same log-normal prior.
+        fit_iter: L-BFGS iterations per fit.
+        **bo_options: :class:`~pigp_torch.optimizers.BayesOpt` options over :data:`BO_DEFAULTS`.
+    """
+    if center_prior not in ("zero", "x0"):
+        raise ValueError(f'center_prior must be "zero" or "x0", got {center_prior!r}')
+    prior = ctx.prior
+    lower, upper = ctx.bounds
+    mu0 = prior.x0.clone() if center_prior == "x0" else (upper + lower) / 2
+    tau = float(center_std) * (upper - lower) / 2
+    mean = PhysicsMean.from_prior(prior, center=mu0, n_eigen_scales=n_eigen_scales)
+    peak0 = prior.f_x0 - prior.f_inf
+
+    def factory(X, Y):
+        model = physics_informed_gp(X, Y, prior, kernel=kernel, mean=mean)
+        with torch.no_grad():
+            cov = model.covar_module(X).to_dense()
+        cov = cov + prior.noise**2 * torch.eye(X.shape[0], dtype=DTYPE)
+        fit_physics_mean(
+            mean,
+            X,
+            Y,
+            cov,
+            center_prior=mu0,
+            center_std=tau,
+            peak_prior=peak0,
+            log_std=log_std,
+            max_iter=fit_iter,
+        )
+        return physics_informed_gp(X, Y, prior, kernel=kernel, mean=copy.deepcopy(mean))
 
     return _bayesopt(ctx, factory, bo_options)
 
@@ -214,6 +282,9 @@ def build_rcds(ctx: RunContext, *, step: float = 0.05, noise: float | None = Non
 METHODS: dict[str, MethodSpec] = {
     "pigp": MethodSpec("pigp", build_pigp, "gp"),
     "pigp-zero-mean": MethodSpec("pigp-zero-mean", build_pigp, "gp", {"mean": "zero"}),
+    "pigp-physics-mean": MethodSpec(
+        "pigp-physics-mean", build_pigp_physics_mean, "gp", {"step_limit": 0.6}
+    ),
     "ml2": MethodSpec("ml2", build_ml2, "gp"),
     "nelder-mead": MethodSpec("nelder-mead", build_nelder_mead, "direct"),
     "rcds": MethodSpec("rcds", build_rcds, "direct"),

@@ -8,7 +8,7 @@ import torch
 from botorch import settings as botorch_settings
 from botorch.models import SingleTaskGP
 from gpytorch.kernels import ScaleKernel
-from gpytorch.means import ConstantMean
+from gpytorch.means import ConstantMean, Mean
 
 from pigp_torch.kernels import FullPrecisionRBFKernel, FullPrecisionRQKernel
 from pigp_torch.models._data import training_data
@@ -24,7 +24,7 @@ def physics_informed_gp(
     prior: PhysicsPrior,
     *,
     kernel: str = "rbf",
-    mean: str | float = "f_inf",
+    mean: str | float | Mean = "f_inf",
     rq_alpha: float = 0.5,
 ) -> SingleTaskGP:
     r"""Build the physics-informed GP (PI-GP) conditioned on data; nothing is fitted.
@@ -52,7 +52,9 @@ def physics_informed_gp(
         Y: ``n`` or ``n x 1`` observed objective values.
         prior: the physics prior.
         kernel: ``"rbf"`` (the paper's kernel) or ``"rq"`` (heavy-tailed variant).
-        mean: ``"f_inf"`` (prior mean = ``prior.f_inf``, as in the paper), ``"zero"``, or a float.
+        mean: ``"f_inf"`` (prior mean = ``prior.f_inf``, as in the paper), ``"zero"``, a float,
+            or a gpytorch ``Mean`` module used as is (e.g.
+            :class:`~pigp_torch.models.physics_mean.PhysicsMean`; its parameters get frozen).
         rq_alpha: :math:`\alpha` of the RQ kernel (ignored for ``"rbf"``).
 
     Returns:
@@ -66,12 +68,20 @@ def physics_informed_gp(
     X, Y = training_data(X, Y, prior.dim)
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
-    if isinstance(mean, str):
+    mean_module = None
+    if isinstance(mean, Mean):
+        mean_module = mean
+    elif isinstance(mean, str):
         if mean not in ("f_inf", "zero"):
             raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}')
         mean_value = prior.f_inf if mean == "f_inf" else 0.0
     else:
-        mean_value = float(mean)
+        try:
+            mean_value = float(mean)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f'mean must be "f_inf", "zero", a float or a Mean, got {mean!r}'
+            ) from None
         if not math.isfinite(mean_value):
             raise ValueError(f"mean must be finite, got {mean_value}")
 
@@ -82,8 +92,9 @@ def physics_informed_gp(
     covar_module = ScaleKernel(base).to(X)
     # set from float64 tensors: gpytorch's setters would round Python floats through float32
     covar_module.outputscale = torch.tensor(prior.amplitude, dtype=X.dtype)
-    mean_module = ConstantMean().to(X)
-    mean_module.constant = torch.tensor(mean_value, dtype=X.dtype)
+    if mean_module is None:
+        mean_module = ConstantMean().to(X)
+        mean_module.constant = torch.tensor(mean_value, dtype=X.dtype)
     train_Yvar = torch.full_like(Y, prior.noise**2)
 
     # raw knob units and raw objective values are intended: skip botorch's scaling warnings
