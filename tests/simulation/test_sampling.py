@@ -17,12 +17,11 @@ def test_design_fractions_and_bounds():
     assert ((X >= b[0]) & (X <= b[1])).all()
     local = X[400:]
     half = (b[1] - b[0]) / 2
-    # the innermost cloud (σ = 0.05 of the half-range) sits at the centre
-    inner = local[:200]
-    assert torch.allclose(inner.mean(0), c, atol=0.02 * half.max())
-    assert torch.allclose(
-        inner.std(0) / half, torch.full((3,), 0.05, dtype=torch.float64), rtol=0.2
-    )
+    # the local draws are centred on c; their widths are log-uniform in 0.01..0.3
+    assert torch.allclose(local.median(0).values, c, atol=0.02 * half.max())
+    dist = ((local - c) / half).abs()
+    assert (dist.median(0).values < 0.1).all()  # most draws are close
+    assert (dist.max(0).values > 0.3).all()  # the widest reach well beyond 0.3 sigma
     # the global part spreads over the box: its mean is near the box centre
     assert torch.allclose(X[:400].mean(0), (b[0] + b[1]) / 2, atol=0.05 * half.max())
 
