@@ -36,6 +36,7 @@ from pigp_torch.simulation.linear_model import SegmentModel, equilibrium
 
 TARGET_RATIO = 0.0071  # skews-off eps_y / eps_x (paper: 0.71 %)
 KNOB_LIMIT = 0.015  # default |K1sL| bound, 1/m
+CHUNK = 16384  # rows per batched evaluation
 #: (f_inf [mA/min], gain [mA/min * m^2]) of loss_rate = f_inf + gain * <1/(sigma_x sigma_y)>.
 LOSS_RATE_MAP = (0.349196, 1.893943e-09)
 
@@ -211,14 +212,17 @@ class Spear3Coupling:
             ValueError: wrong shape or NaN/inf entries.
         """
         X, single = as_knob_tensor(x, self.dim)
-        order = self._m["order"].to(X.device)
-        state = equilibrium(self._model(X.device), X[:, order])
+        Xo = X[:, self._m["order"].to(X.device)]
+        model = self._model(X.device)
+        # Chunks of ~16k rows keep the stacks of 6x6 matrices in cache: 100k rows in one piece
+        # ran at 35k samples/s, in 20k pieces at 55k/s (2 cores).
+        states = [equilibrium(model, Xo[i : i + CHUNK]) for i in range(0, Xo.shape[0], CHUNK)]
         f_inf, gain = LOSS_RATE_MAP
         out = CouplingResult(
-            eps_x=state.eps[:, 1],
-            eps_y=state.eps[:, 0],
-            loss_rate=f_inf + gain * state.inv_sigma_xy,
-            stable=state.stable,
+            eps_x=torch.cat([s.eps[:, 1] for s in states]),
+            eps_y=torch.cat([s.eps[:, 0] for s in states]),
+            loss_rate=f_inf + gain * torch.cat([s.inv_sigma_xy for s in states]),
+            stable=torch.cat([s.stable for s in states]),
         )
         return CouplingResult(*(v[0] for v in out)) if single else out
 

@@ -32,6 +32,7 @@ def measure_throughput(
     difference of εy and the loss rate between the two paths on the reference points.
     """
     from pigp_torch.simulation.linear_model import equilibrium
+    from pigp_torch.simulation.spear3 import CHUNK
 
     g = torch.Generator().manual_seed(seed)
     X = (2 * torch.rand(batch, sim.dim, generator=g, dtype=torch.float64) - 1) * sim.bounds[1]
@@ -43,7 +44,9 @@ def measure_throughput(
 
         def run(emittances, Xd=Xd, model=model, order=order):
             with torch.no_grad():
-                equilibrium(model, Xd[:, order], emittances=emittances)
+                Xo = Xd[:, order]
+                for i in range(0, Xo.shape[0], CHUNK):  # as Spear3Coupling.evaluate does
+                    equilibrium(model, Xo[i : i + CHUNK], emittances=emittances)
             if Xd.device.type == "cuda":
                 torch.cuda.synchronize()
 
