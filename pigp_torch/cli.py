@@ -306,6 +306,10 @@ def cmd_bench_simulator(args) -> int:
 
 
 # ----------------------------------------------------------------------------- parser
+#: Modules of ``pigp_torch.commands`` that register further sub-commands.
+COMMAND_MODULES: tuple[str, ...] = ()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pigp",
@@ -413,6 +417,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--n-reference", type=int, default=5, help="pyAT evaluations (default 5)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.set_defaults(func=cmd_bench_simulator)
+
+    # Commands that live in their own modules (pigp_torch/commands/<name>.py), each with
+    # ``register(sub, bench)`` adding its sub-parsers (cheap imports only at module level).
+    import importlib
+
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"pigp_torch.commands.{name}").register(sub, bench)
     return parser
 
 
