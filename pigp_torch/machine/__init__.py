@@ -7,11 +7,15 @@ from pigp_torch.machine.base import (
     max_step_tensor,
     ramp,
 )
+from pigp_torch.machine.errors import MachineError, ReadbackError, ReadError
 from pigp_torch.machine.simulated import SimulatedMachine
 
 __all__ = [
     "GuardedMachine",
     "Machine",
+    "MachineError",
+    "ReadError",
+    "ReadbackError",
     "SimulatedMachine",
     "check_setting",
     "max_step_tensor",
