@@ -45,6 +45,7 @@ from pigp_torch.machine import SimulatedMachine
 from pigp_torch.models import PhysicsMean, fit_physics_mean, ml2_gp, physics_informed_gp
 from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
 from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 
 #: Budget classes of the protocol (evaluations, start point included).
@@ -193,6 +194,14 @@ def build_pigp_physics_mean(
     return _bayesopt(ctx, factory, bo_options)
 
 
+def build_pigp_physics(ctx: RunContext, **options) -> PhysicsModelBO:
+    r"""UCB on the online-fitted physics form :math:`f_\infty + (c + \beta(\mathbf x -
+    \boldsymbol\mu)^\top B(\mathbf x - \boldsymbol\mu))^{-1/2}`, :math:`B` from ``ctx.prior``
+    (:class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO`; options override its defaults:
+    ``beta=4``, ``step_limit=0.6``, ``center_std=1.0``, ``residual_std=0.05``)."""
+    return PhysicsModelBO(ctx.bounds, ctx.prior, seed=ctx.seed, noise=ctx.noise, **options)
+
+
 def machine_archive(
     machine: SimulatedMachine, size: int, *, spread: float = 0.2, seed: int = 0
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -285,6 +294,7 @@ METHODS: dict[str, MethodSpec] = {
     "pigp-physics-mean": MethodSpec(
         "pigp-physics-mean", build_pigp_physics_mean, "gp", {"step_limit": 0.6}
     ),
+    "pigp-physics": MethodSpec("pigp-physics", build_pigp_physics, "gp"),
     "ml2": MethodSpec("ml2", build_ml2, "gp"),
     "nelder-mead": MethodSpec("nelder-mead", build_nelder_mead, "direct"),
     "rcds": MethodSpec("rcds", build_rcds, "direct"),

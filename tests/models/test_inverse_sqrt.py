@@ -1,0 +1,141 @@
+"""The online physics form f_inf + (c + beta (x-mu)'B(x-mu))^-1/2: shape, fit, UCB."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.optimizers.physics_bo import PhysicsModelBO
+from pigp_torch.prior import PhysicsPrior
+
+DT = torch.float64
+D = 5
+F_INF = 0.35
+
+
+def synthetic_prior(seed: int = 0, f_x0: float = 0.9, noise: float = 0.02) -> PhysicsPrior:
+    """A prior with a random rotated precision (eigenvalues spread 1..40 in half-range units)."""
+    g = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(g.standard_normal((D, D)))
+    half = 0.015
+    P = torch.tensor(Q @ np.diag(np.geomspace(1.0, 40.0, D)) @ Q.T) / half**2
+    return PhysicsPrior(
+        x0=torch.zeros(D, dtype=DT),
+        f_x0=f_x0,
+        f_inf=F_INF,
+        precision=(P + P.T) / 2,
+        amplitude=0.1,
+        noise=noise,
+        knob_names=[f"k{i}" for i in range(D)],
+        bounds=torch.tensor([[-half] * D, [half] * D], dtype=DT),
+    )
+
+
+def true_theta(model: InverseSqrtPeakModel, mu, c: float, beta: float) -> torch.Tensor:
+    tail = torch.tensor([math.log(c), math.log(beta)], dtype=DT)
+    return torch.cat([torch.as_tensor(mu, dtype=DT), tail])
+
+
+@pytest.fixture
+def prior():
+    return synthetic_prior()
+
+
+def test_shape_B_is_2_cm_sigma_and_residual_precision_is_the_log_hessian(prior):
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    c_m = (prior.f_x0 - prior.f_inf) ** -2
+    torch.testing.assert_close(model.B, 2 * c_m * prior.precision, rtol=1e-12, atol=0)
+    # With the model ring's own parameters (mu = x0, c = c_m, beta = 1) the form reproduces
+    # the prior: peak f(x0) and Hessian of log(f - f_inf) at x0 equal to -2 Sigma.
+    model.theta = true_theta(model, prior.x0, c_m, 1.0)
+    assert model.peak() == pytest.approx(prior.f_x0, rel=1e-12)
+    H = torch.autograd.functional.hessian(
+        lambda x: torch.log(model.form(x.unsqueeze(0))[0] - F_INF), prior.x0
+    )
+    torch.testing.assert_close(H, -2 * prior.precision, rtol=1e-9, atol=1e-6)
+    torch.testing.assert_close(model.residual_precision(), prior.precision, rtol=1e-12, atol=0)
+
+
+def test_jacobian_matches_autograd(prior):
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    theta = true_theta(model, [0.004, -0.002, 0.0, 0.001, 0.003], 0.8, 1.3)
+    model.theta = theta
+    X = torch.rand(7, D, dtype=DT, generator=torch.Generator().manual_seed(1)) * 0.03 - 0.015
+    J = model.jacobian(X)
+    J_ref = torch.autograd.functional.jacobian(lambda t: model.form(X, t), theta)
+    torch.testing.assert_close(J, J_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_fit_recovers_the_machine_parameters_from_noise_free_data(prior):
+    model = InverseSqrtPeakModel(prior, prior.bounds, noise=1e-4, residual_std=0.0)
+    mu = torch.tensor([0.006, -0.004, 0.002, 0.0, -0.007], dtype=DT)
+    theta = true_theta(model, mu, 0.6, 1.2)  # another machine: its own centre, depth, scale
+    g = torch.Generator().manual_seed(3)
+    X = mu + (torch.rand(40, D, generator=g, dtype=DT) * 2 - 1) * 0.006
+    Y = model.form(X, theta)
+    model.fit(X, Y)
+    torch.testing.assert_close(model.center(), mu, rtol=0, atol=2e-5)
+    assert math.exp(float(model.theta[D])) == pytest.approx(0.6, rel=1e-2)
+    assert math.exp(float(model.theta[D + 1])) == pytest.approx(1.2, rel=1e-2)
+    mean, sd = model.predict(X[:3])
+    torch.testing.assert_close(mean, Y[:3], rtol=0, atol=1e-4)
+    assert (sd < 1e-3).all()
+
+
+def test_uncertainty_shrinks_with_data_and_residual_gp_interpolates(prior):
+    model = InverseSqrtPeakModel(prior, prior.bounds, noise=0.02, residual_std=0.05)
+    theta_true = true_theta(model, torch.full((D,), 0.003, dtype=DT), 0.8, 1.0)
+    g = torch.Generator().manual_seed(5)
+    Xall = (torch.rand(60, D, generator=g, dtype=DT) * 2 - 1) * 0.01
+    bump = 0.05 * torch.exp(-((Xall - 0.002) ** 2).sum(-1) / 0.004**2)  # what the form misses
+    Yall = model.form(Xall, theta_true) + bump
+    probe = torch.full((1, D), 0.002, dtype=DT)
+    model.fit(Xall[:10], Yall[:10])
+    _, sd_few = model.predict(probe)
+    model.fit(Xall, Yall)
+    mean_many, sd_many = model.predict(probe)
+    assert float(sd_many) < float(sd_few)
+    truth = float(model.form(probe, theta_true)[0]) + 0.05
+    form_only = float(model.form(probe)[0])
+    # the residual GP moves the prediction towards the truth compared with the form alone
+    assert abs(float(mean_many) - truth) < abs(form_only - truth)
+
+
+def test_validation_errors(prior):
+    with pytest.raises(ValueError, match="center_std must be positive"):
+        InverseSqrtPeakModel(prior, prior.bounds, center_std=0.0)
+    with pytest.raises(ValueError, match="residual_std must be >= 0"):
+        InverseSqrtPeakModel(prior, prior.bounds, residual_std=-1.0)
+    with pytest.raises(ValueError, match="prior has 5 knobs, bounds have 3"):
+        InverseSqrtPeakModel(prior, torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=DT))
+    with pytest.raises(RuntimeError, match="fit"):
+        InverseSqrtPeakModel(prior, prior.bounds).center()
+    with pytest.raises(ValueError, match="maximizes only"):
+        PhysicsModelBO(prior.bounds, prior, maximize=False)
+
+
+def test_physics_bo_reaches_the_peak_of_another_machine(prior):
+    """From the box centre, on a machine with another centre, depth and scale, with noise."""
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    theta = true_theta(model, [0.007, -0.006, 0.004, -0.002, 0.006], 0.5, 1.15)
+
+    def f(x):
+        return float(model.form(x.unsqueeze(0), theta)[0])
+
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.zeros(D, dtype=DT)
+    f0, fstar = f(x), F_INF + 0.5**-0.5
+    best = f0
+    half = 0.015
+    for _ in range(25):
+        bo.tell(x, f(x) + prior.noise * float(torch.randn((), generator=gen, dtype=DT)))
+        x = bo.ask()
+        box = bo.trust_box(bo.last_info["center"])
+        assert (x >= box[0]).all() and (x <= box[1]).all()
+        assert (x.abs() <= half).all()
+        assert ((x - bo.last_info["center"]).abs() <= 0.6 * half * (1 + 1e-12)).all()
+        best = max(best, f(x))
+    assert (best - f0) / (fstar - f0) >= 0.95
