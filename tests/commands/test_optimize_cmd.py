@@ -1,0 +1,209 @@
+"""Tests of `pigp optimize`: a run on the simulated machine, dry run, resume, bad input, and the
+knobs restored when the process is stopped by SIGINT or SIGTERM."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from pigp_torch import cli
+from pigp_torch.commands.optimize import register
+from pigp_torch.runlog import read_log
+
+KNOBS = ["01G-QSS4", "02G-QSS3"]
+X_INIT = {"01G-QSS4": 0.002, "02G-QSS3": -0.001}
+
+
+@pytest.fixture(autouse=True)
+def with_optimize_command(monkeypatch):
+    """`pigp optimize` registered the way cli.py does it (COMMAND_MODULES)."""
+    modules = tuple(dict.fromkeys((*cli.COMMAND_MODULES, "optimize")))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", modules)
+
+
+def write_config(tmp_path, name="run.yaml", **over) -> str:
+    data = {
+        "machine": {"kind": "sim", "error_seed": 1, "noise": 0.04, "seed": 2, "x_init": X_INIT},
+        "knobs": {k: [-0.01, 0.01] for k in KNOBS},
+        "method": {"name": "nelder-mead", "options": {"initial_simplex_size": 0.2}},
+        "budget": 5,
+        "max_step": 0.1,
+        "log": "run.jsonl",
+    }
+    data.update(over)
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_register_adds_a_documented_command(capsys):
+    """register() adds `optimize` with its options to a fresh parser."""
+    parser = argparse.ArgumentParser(prog="pigp")
+    register(parser.add_subparsers(dest="command"), None)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["optimize", "--help"])
+    text = capsys.readouterr().out
+    for option in ("--config", "--resume", "--dry-run", "--quiet"):
+        assert option in text
+    args = parser.parse_args(["optimize", "--config", "r.yaml", "--dry-run"])
+    assert args.dry_run and str(args.config) == "r.yaml" and args.resume is None
+
+
+def test_a_run_prints_steps_and_a_summary_and_restores_the_knobs(tmp_path, capsys):
+    """5 evaluations: a line per step, the summary (best y and where, the restore), exit 0, and
+    a log whose end record has the initial knobs as readback."""
+    assert cli.main(["optimize", "--config", write_config(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    log = read_log(tmp_path / "run.jsonl")
+    steps = [line for line in out.splitlines() if line.startswith("step ")]
+    assert log.n_evaluations == 5 and len(steps) == 5 and steps[-1].startswith("step    4/5")
+    step, _, y = log.best()
+    assert f"best y = {y:.6g} at step {step}" in out
+    assert "status: completed" in out and "knobs restored to initial" in out
+    assert log.last_end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
+    assert log.header["config"]["budget"] == 5 and log.header["knob_names"] == KNOBS
+
+
+def test_dry_run_prints_the_plan_and_touches_nothing(tmp_path, capsys):
+    """--dry-run shows the knobs, their limits and current values and writes no log."""
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "plan: nelder-mead on the simulated ring" in out and "dry run" in out
+    assert "01G-QSS4" in out and "0.002" in out and "0.001" in out  # now / max step columns
+    assert not (tmp_path / "run.jsonl").exists()
+
+
+def test_resume_extends_a_run_like_a_longer_run(tmp_path, capsys):
+    """4 evaluations, then --resume with budget 9: the log equals an uninterrupted 9-run's."""
+    one = write_config(tmp_path, "a.yaml", budget=9, log="a.jsonl")
+    assert cli.main(["optimize", "--config", one, "--quiet"]) == 0
+    short = write_config(tmp_path, "b.yaml", budget=4, log="b.jsonl")
+    assert cli.main(["optimize", "--config", short, "--quiet"]) == 0
+    longer = write_config(tmp_path, "b9.yaml", budget=9, log="b.jsonl")
+    argv = ["optimize", "--config", longer, "--resume", str(tmp_path / "b.jsonl"), "--quiet"]
+    assert cli.main(argv) == 0
+    assert "continue at step 4" in capsys.readouterr().out
+    a, b = read_log(tmp_path / "a.jsonl"), read_log(tmp_path / "b.jsonl")
+    assert b.n_evaluations == 9
+    assert b.X().tolist() == a.X().tolist() and b.Y().tolist() == a.Y().tolist()
+    assert cli.main(["optimize", "--resume", str(tmp_path / "b.jsonl")]) == 2  # budget reached
+    assert "already holds 9 evaluations" in capsys.readouterr().err
+
+
+def test_bad_input_exits_2_with_one_message(tmp_path, capsys):
+    """An invalid run file, an existing log, or nothing to run: exit 2 and a clear message."""
+    assert cli.main(["optimize", "--config", write_config(tmp_path, budgte=3)]) == 2
+    assert "unknown key 'budgte' (did you mean 'budget'?)" in capsys.readouterr().err
+    (tmp_path / "run.jsonl").write_text("")
+    assert cli.main(["optimize", "--config", write_config(tmp_path)]) == 2
+    assert "exists: continue it with --resume" in capsys.readouterr().err
+    assert cli.main(["optimize"]) == 2
+    assert "give a run file with --config" in capsys.readouterr().err
+
+
+def test_objective_floor_abort_exits_1(tmp_path, capsys):
+    """A reading below objective_floor: exit 1, status aborted, knobs restored."""
+    assert cli.main(["optimize", "--config", write_config(tmp_path, objective_floor=5.0)]) == 1
+    captured = capsys.readouterr()
+    assert "run aborted: RunAborted" in captured.err and "status: aborted" in captured.out
+    end = read_log(tmp_path / "run.jsonl").last_end
+    assert end["final_knobs"] == list(X_INIT.values()) and end["n_evaluations"] == 1
+
+
+# A child process with an interactive-terminal SIGINT (a background shell starts children with
+# SIGINT ignored) and `optimize` registered as cli.py will register it.
+CHILD = (
+    "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "import pigp_torch.cli as c; "
+    "c.COMMAND_MODULES = tuple(dict.fromkeys((*c.COMMAND_MODULES, 'optimize'))); "
+    "sys.exit(c.main(sys.argv[1:]))"
+)
+
+
+@pytest.mark.parametrize(
+    ("signum", "code"),
+    [(signal.SIGINT, 130), pytest.param(signal.SIGTERM, 143, marks=pytest.mark.slow)],
+    ids=["SIGINT", "SIGTERM"],
+)
+def test_a_signal_stops_the_process_and_the_knobs_are_restored(tmp_path, signum, code):
+    """SIGINT / SIGTERM after a few logged evaluations: the process exits promptly with
+    130 / 143, the log ends 'interrupted' and the final readback equals the initial knobs."""
+    config = write_config(tmp_path, budget=100_000)
+    log_path = tmp_path / "run.jsonl"
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "OPENBLAS_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+    }
+    with open(tmp_path / "out.txt", "w") as out, open(tmp_path / "err.txt", "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", CHILD, "optimize", "--config", config, "--quiet"],
+            stdout=out,
+            stderr=err,
+            env=env,
+        )
+        try:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and proc.poll() is None:
+                if log_path.exists() and log_path.read_text().count('"evaluation"') >= 3:
+                    break
+                time.sleep(0.1)
+            assert proc.poll() is None, (tmp_path / "err.txt").read_text()
+            sent = time.monotonic()
+            proc.send_signal(signum)
+            rc = proc.wait(timeout=30)
+            elapsed = time.monotonic() - sent
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    assert rc == code, (tmp_path / "err.txt").read_text()
+    assert elapsed < 10
+    log = read_log(log_path)
+    end = log.last_end
+    assert end["status"] == "interrupted" and end["restored_to"] == "initial"
+    assert end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
+    assert log.n_evaluations >= 3 and end["n_evaluations"] == log.n_evaluations
+    assert log.X()[-1].tolist() != end["final_knobs"]
+    assert "status: interrupted" in (tmp_path / "out.txt").read_text()
+
+
+@pytest.mark.slow
+def test_a_run_over_channel_access_against_the_simulated_ioc(tmp_path, capsys):
+    """`pigp optimize` on an EpicsMachine talking to the simulated IOC over CA (127.0.0.1):
+    the dry run moves nothing; the run logs every evaluation and the IOC's knobs end where
+    they were found."""
+    import torch
+
+    from pigp_torch.epics.ioc import start_sim_ioc
+    from pigp_torch.machine.epics import EpicsMachine
+
+    start = torch.tensor(list(X_INIT.values()), dtype=torch.float64)
+    bounds = torch.tensor([[-0.01, -0.01], [0.01, 0.01]], dtype=torch.float64)
+    with start_sim_ioc(1, knobs=KNOBS, update_period=0.05) as ioc:
+        with EpicsMachine(KNOBS, bounds, ioc.loss_rate_pv, settle_time=0.1) as m:
+            m.set(start)
+        machine = {"kind": "epics", "settle_time": 0.1, "timeout": 1.0}
+        config = write_config(
+            tmp_path, machine=machine, objective={"pv": ioc.loss_rate_pv}, retry_interval=0.05
+        )
+        assert cli.main(["optimize", "--config", config, "--dry-run"]) == 0
+        assert "plan: nelder-mead on the EPICS" in capsys.readouterr().out
+        assert not (tmp_path / "run.jsonl").exists()
+        assert cli.main(["optimize", "--config", config, "--quiet"]) == 0
+        with EpicsMachine(KNOBS, bounds, ioc.loss_rate_pv) as m:
+            after = m.get()
+    log = read_log(tmp_path / "run.jsonl")
+    assert log.n_evaluations == 5 and log.last_end["status"] == "completed"
+    assert torch.allclose(after, start, rtol=0, atol=1e-8)
+    assert log.starts[0]["initial_knobs"] == pytest.approx(start.tolist(), abs=1e-8)
+    assert log.last_end["final_knobs"] == pytest.approx(start.tolist(), abs=1e-8)
+    assert len(set(map(tuple, log.X().tolist()))) == 5  # five different settings were measured

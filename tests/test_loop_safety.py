@@ -1,0 +1,371 @@
+"""Safety rules of the loop on any machine: checked settings, ramps, read retries, the objective
+floor, restores verified by readback, signals, and what the run log holds after a failure."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+
+import pytest
+import torch
+from botorch.models import SingleTaskGP
+from botorch.models.transforms import Normalize
+from gpytorch.kernels import RBFKernel, ScaleKernel
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pigp_torch.loop import RunAborted, Terminated, optimize
+from pigp_torch.machine import GuardedMachine, MachineError, ReadError
+from pigp_torch.optimizers import OPTIMIZERS, NelderMead
+from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.runlog import read_log, replay
+
+D = torch.float64
+BOUNDS = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
+X_STAR = torch.tensor([0.3, -0.2], dtype=D)
+
+
+def bowl(x) -> float:
+    return float(1.0 - ((torch.as_tensor(x, dtype=D) - X_STAR) ** 2).sum())
+
+
+class Walk(AskTellOptimizer):
+    """Each ask moves the last point by +step on every knob (clamped to the bounds)."""
+
+    name = "walk"
+
+    def __init__(self, bounds, step=0.1, **kwargs):
+        super().__init__(bounds, **kwargs)
+        self.step = step
+
+    def ask(self):
+        return torch.clamp(self.X[-1] + self.step, self.bounds[0], self.bounds[1])
+
+
+class FaultyMachine(GuardedMachine):
+    """Reads bowl(x); ``faults`` maps a read number (1-based) to a value or an exception to
+    return/raise instead; ``fail_on_set`` raises MachineError on that set (1-based)."""
+
+    def __init__(self, faults=None, fail_on_set=None, x_init=(0.1, 0.2), **kwargs):
+        super().__init__(BOUNDS, ["qs1", "qs2"], x_init=list(x_init), **kwargs)
+        self.faults = dict(faults or {})
+        self.fail_on_set = fail_on_set
+        self.n_reads = self.n_sets = 0
+        self.sets: list[torch.Tensor] = []
+
+    def _apply(self, x):
+        self.n_sets += 1
+        if self.n_sets == self.fail_on_set:
+            raise MachineError("power supply tripped")
+        self.sets.append(x.clone())
+
+    def read(self):
+        self.n_reads += 1
+        fault = self.faults.get(self.n_reads)
+        if isinstance(fault, BaseException):
+            raise fault
+        if fault is not None:
+            return fault
+        return bowl(self._x)
+
+
+INITIAL = [0.1, 0.2]
+
+
+def test_invalid_readings_are_retried_up_to_read_retries(tmp_path):
+    """NaN, inf, ReadError and TimeoutError count as invalid; two of them within one evaluation
+    are retried (read_retries=2) and the log says how many attempts it took."""
+    faults = {3: float("nan"), 4: ReadError("timeout"), 7: float("inf"), 8: TimeoutError("ca")}
+    m = FaultyMachine(faults)
+    table = optimize(m, Walk(BOUNDS), None, 5, read_retries=2, log=tmp_path / "r.jsonl")
+    assert table["y"].tolist() == pytest.approx(
+        [bowl(table.loc[k, ["qs1", "qs2"]].tolist()) for k in range(5)]
+    )
+    log = read_log(tmp_path / "r.jsonl")
+    assert [e["reads"] for e in log.evaluations] == [1, 1, 3, 1, 3]
+    assert m.n_reads == 9 and log.last_end["status"] == "completed"
+
+
+def test_more_invalid_readings_than_retries_abort_and_restore(tmp_path):
+    """k = retries + 1 invalid readings in a row: ReadError, knobs back at the initial setting,
+    the log ends 'aborted' after the completed evaluations."""
+    faults = {3: float("nan"), 4: float("nan"), 5: float("nan")}
+    m = FaultyMachine(faults)
+    with pytest.raises(ReadError, match="no valid reading in 3 attempts"):
+        optimize(m, Walk(BOUNDS), None, 6, read_retries=2, log=tmp_path / "r.jsonl")
+    assert m.get().tolist() == INITIAL
+    log = read_log(tmp_path / "r.jsonl")
+    assert log.n_evaluations == 2
+    assert log.last_end["status"] == "aborted" and "ReadError" in log.last_end["reason"]
+    assert log.last_end["final_knobs"] == INITIAL and log.last_end["restored_to"] == "initial"
+    m = FaultyMachine({1: float("nan")})
+    with pytest.raises(ReadError, match="in 1 attempts"):
+        optimize(m, Walk(BOUNDS), None, 3, read_retries=0)
+
+
+def test_machine_error_mid_run_restores_and_the_log_keeps_every_evaluation(tmp_path):
+    """A MachineError on the 5th set: the initial knobs are restored and the log holds the 4
+    completed evaluations exactly as measured."""
+    m = FaultyMachine(fail_on_set=5)
+    rows = []
+    with pytest.raises(MachineError, match="power supply tripped"):
+        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=tmp_path / "r.jsonl", callback=rows.append)
+    assert m.get().tolist() == INITIAL
+    log = read_log(tmp_path / "r.jsonl")
+    assert log.n_evaluations == 4 == len(rows)
+    assert log.X().tolist() == [[r["qs1"], r["qs2"]] for r in rows]
+    assert log.Y().tolist() == [r["y"] for r in rows]
+    assert log.last_end["status"] == "aborted" and log.last_end["final_knobs"] == INITIAL
+
+
+def test_objective_floor_aborts_after_recording_the_reading(tmp_path):
+    """A reading below objective_floor is logged, then RunAborted; the knobs go back."""
+    m = FaultyMachine({4: 0.05})
+    with pytest.raises(RunAborted, match=r"below the floor 0\.1"):
+        optimize(m, Walk(BOUNDS), None, 10, objective_floor=0.1, log=tmp_path / "r.jsonl")
+    log = read_log(tmp_path / "r.jsonl")
+    assert log.Y().tolist()[-1] == 0.05 and log.n_evaluations == 4
+    assert log.last_end["status"] == "aborted" and m.get().tolist() == INITIAL
+
+
+def test_restore_best_is_verified_by_readback(tmp_path):
+    """restore='best' ends at the best point when the readback agrees; a knob that does not
+    follow fails the readback check with MachineError, recorded in the log."""
+    m = FaultyMachine(x_init=(-0.2, -0.9))
+    table = optimize(m, Walk(BOUNDS), None, 8, restore="best")
+    assert m.get().tolist() == pytest.approx(
+        table.loc[table["y"].idxmax(), ["qs1", "qs2"]].tolist()
+    )
+
+    class Stuck(FaultyMachine):
+        def get(self):  # the first knob's readback stays at the start
+            x = super().get()
+            x[0] = -0.2
+            return x
+
+    m = Stuck(x_init=(-0.2, -0.9))
+    with pytest.raises(MachineError, match=r"readback check failed on knob indices \[0\]"):
+        optimize(m, Walk(BOUNDS, step=0.01), None, 3, restore="best", log=tmp_path / "s.jsonl")
+    end = read_log(tmp_path / "s.jsonl").last_end
+    assert end["status"] == "aborted" and end["reason"].startswith("restoring the knobs failed")
+
+
+def test_the_loop_refuses_settings_a_bare_machine_would_accept():
+    """A machine with no checks of its own: the loop still refuses a proposal outside the bounds
+    (before calling set) and restores the start."""
+
+    class Bare:
+        def __init__(self):
+            self.knob_names, self.bounds = ["a", "b"], BOUNDS
+            self.x = torch.zeros(2, dtype=D)
+            self.sets = []
+
+        def set(self, x):
+            self.sets.append(x.clone())
+            self.x = x.clone()
+
+        def get(self):
+            return self.x.clone()
+
+        def read(self):
+            return bowl(self.x)
+
+    class Escape(Walk):
+        def ask(self):
+            return self.X[-1] + 0.6  # no clamp: leaves the box on the second ask
+
+    m = Bare()
+    with pytest.raises(ValueError, match="outside bounds"):
+        optimize(m, Escape(BOUNDS), [0.3, 0.3], 5)
+    assert all(bool(((s >= -1) & (s <= 1)).all()) for s in m.sets)
+    assert m.get().tolist() == [0.0, 0.0]
+
+
+def test_ramp_moves_split_every_proposal_within_max_step():
+    """moves='ramp': Nelder–Mead, which has no step limit, reaches each proposal in steps of at
+    most max_step and is read once per proposal."""
+    m = FaultyMachine(max_step=0.05, x_init=(0.0, 0.0))
+    table = optimize(m, NelderMead(BOUNDS, initial_simplex_size=0.3), None, 12, moves="ramp")
+    assert m.n_reads == 12 and len(m.sets) > 12
+    path = [torch.zeros(2, dtype=D), *m.sets]  # from x_init
+    steps = torch.stack([(b - a).abs() for a, b in itertools.pairwise(path)])
+    assert float(steps.max()) <= 0.05 * 0.99 + 1e-12
+    assert table.loc[3, ["qs1", "qs2"]].tolist() != [0.0, 0.0]
+    with pytest.raises(ValueError, match="step too large"):  # the same run with single sets
+        optimize(
+            FaultyMachine(max_step=0.05), NelderMead(BOUNDS, initial_simplex_size=0.3), None, 5
+        )
+
+
+def test_sigterm_takes_the_ctrl_c_path_and_the_handler_is_put_back(tmp_path):
+    """SIGTERM during a read raises Terminated (a KeyboardInterrupt) after the restore; the
+    previous SIGTERM handler is back afterwards; the log ends 'interrupted'."""
+    previous = signal.getsignal(signal.SIGTERM)
+
+    class Killed(FaultyMachine):
+        def read(self):
+            if self.n_reads == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return super().read()
+
+    m = Killed()
+    with pytest.raises(Terminated):
+        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=tmp_path / "r.jsonl")
+    assert signal.getsignal(signal.SIGTERM) is previous
+    assert m.get().tolist() == INITIAL
+    end = read_log(tmp_path / "r.jsonl").last_end
+    assert end["status"] == "interrupted" and "SIGTERM" in end["reason"]
+    assert end["final_knobs"] == INITIAL and issubclass(Terminated, KeyboardInterrupt)
+
+
+def test_a_signal_during_the_restore_is_deferred(tmp_path):
+    """Ctrl-C while the knobs are being restored after a completed run does not cut the restore
+    short: it completes, the log notes the signal, a warning says it was ignored."""
+
+    class Impatient(FaultyMachine):
+        def _apply(self, x):
+            super()._apply(x)
+            if self.n_reads == 4 and not getattr(self, "sent", False):
+                self.sent = True
+                os.kill(os.getpid(), signal.SIGINT)
+
+    m = Impatient()
+    with pytest.warns(UserWarning, match="SIGINT.*ignored"):
+        table = optimize(m, Walk(BOUNDS), [-0.5, -0.5], 4, log=tmp_path / "r.jsonl")
+    assert len(table) == 4 and m.get().tolist() == INITIAL
+    end = read_log(tmp_path / "r.jsonl").last_end
+    assert end["status"] == "completed" and end["deferred_signals"] == ["SIGINT"]
+
+
+# ------------------------------------------------------------------------------------ properties
+class Recorder:
+    """A machine with no checks of its own that records every setting it is sent."""
+
+    def __init__(self, bounds, max_step, x_init, f, noise, seed):
+        self.bounds = bounds
+        self.knob_names = [f"k{i}" for i in range(bounds.shape[1])]
+        self.max_step = max_step
+        self.x = x_init.clone()
+        self.sets = [x_init.clone()]
+        self.f, self.noise = f, noise
+        self.gen = torch.Generator().manual_seed(seed)
+
+    def set(self, x):
+        self.sets.append(torch.as_tensor(x, dtype=D).clone())
+        self.x = self.sets[-1].clone()
+
+    def get(self):
+        return self.x.clone()
+
+    def read(self):
+        return self.f(self.x) + self.noise * float(torch.randn((), generator=self.gen, dtype=D))
+
+
+def build(name, bounds, seed):
+    """A fresh optimizer of the registry; BayesOpt with a cheap fixed-hyperparameter GP."""
+    if name == "bo":
+
+        def factory(X, Y):
+            k = ScaleKernel(RBFKernel()).to(D)
+            k.base_kernel.lengthscale = 0.3  # in the unit cube (Normalize below)
+            k.outputscale = 1.0
+            gp = SingleTaskGP(
+                X,
+                Y,
+                torch.full_like(Y, 1e-3),
+                covar_module=k,
+                input_transform=Normalize(X.shape[-1], bounds=bounds),
+                outcome_transform=None,
+            )
+            return gp.eval()
+
+        return OPTIMIZERS[name](
+            bounds,
+            factory,
+            step_limit=0.25,
+            num_restarts=2,
+            raw_samples=16,
+            seed=seed,
+            options={"maxiter": 20},
+        )
+    if name == "rcds":
+        return OPTIMIZERS[name](bounds, noise=0.05)
+    return OPTIMIZERS[name](bounds)
+
+
+@st.composite
+def problems(draw):
+    d = draw(st.integers(1, 3))
+    lo = torch.tensor(draw(st.lists(st.floats(-5, 5), min_size=d, max_size=d)), dtype=D)
+    width = torch.tensor(draw(st.lists(st.floats(0.01, 10), min_size=d, max_size=d)), dtype=D)
+    bounds = torch.stack([lo, lo + width])
+    frac = draw(st.floats(0.02, 1.0))
+    u0 = torch.tensor(draw(st.lists(st.floats(0, 1), min_size=d, max_size=d)), dtype=D)
+    center = torch.tensor(draw(st.lists(st.floats(0, 1), min_size=d, max_size=d)), dtype=D)
+    noise = draw(st.sampled_from([0.0, 0.01, 0.3]))
+    return bounds, frac, bounds[0] + u0 * width, bounds[0] + center * width, noise
+
+
+@pytest.mark.parametrize("name", sorted(OPTIMIZERS))
+@settings(
+    max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
+)
+@given(problem=problems(), seed=st.integers(0, 100))
+def test_no_setting_leaves_the_bounds_or_the_step_limit(name, problem, seed):
+    """For every optimizer, random boxes, step limits and noise: every point sent to the machine
+    lies in the bounds and within max_step of the previous one; BayesOpt asks in its trust box."""
+    bounds, frac, x_init, center, noise = problem
+    width = bounds[1] - bounds[0]
+
+    def f(x):
+        return float(1.0 - (((x - center) / width) ** 2).sum())
+
+    limit = frac * width / 2
+    m = Recorder(bounds, limit, x_init, f, noise, seed)
+    opt = build(name, bounds, seed)
+    boxes = []
+
+    def check_trust_box(row):
+        if name == "bo" and row["step"] > 0:
+            x = torch.tensor([row[k] for k in m.knob_names], dtype=D)
+            lo, hi = opt.last_info["trust_lower"], opt.last_info["trust_upper"]
+            boxes.append(bool(((x >= lo) & (x <= hi)).all()))
+
+    table = optimize(m, opt, None, 7, moves="ramp", callback=check_trust_box)
+    assert len(table) == 7
+    S = torch.stack(m.sets)
+    assert bool(((S >= bounds[0]) & (S <= bounds[1])).all())
+    assert bool(((S[1:] - S[:-1]).abs() <= limit * (1 + 1e-9)).all())
+    assert torch.equal(m.get(), x_init)  # restored
+    if name == "bo":
+        assert boxes and all(boxes)
+
+
+@pytest.mark.parametrize("name", ["nelder-mead", "rcds"])
+@settings(max_examples=5, deadline=None, derandomize=True)
+@given(crash_at=st.integers(1, 10), d=st.integers(1, 3))
+def test_resume_after_any_crash_reproduces_the_run(tmp_path_factory, name, crash_at, d):
+    """A crash after any step, then replay + continue: the same rows as a run without crash."""
+    bounds = torch.stack([-torch.ones(d, dtype=D), torch.ones(d, dtype=D)])
+
+    def f(x):  # rough but reproducible: a deterministic "noise" term of the point
+        return float(-(x**2).sum() + 0.05 * torch.sin(1e3 * x).sum())
+
+    x0 = torch.full((d,), 0.4, dtype=D)
+    reference = optimize(f, build(name, bounds, 0), x0, 12)
+
+    def crash(row):
+        if row["step"] == crash_at:
+            raise RuntimeError("crash")
+
+    path = tmp_path_factory.mktemp("resume") / "r.jsonl"
+    with pytest.raises(RuntimeError):
+        optimize(f, build(name, bounds, 0), x0, 12, log=path, callback=crash)
+    records = read_log(path)
+    assert records.n_evaluations == crash_at + 1
+    resumed = optimize(f, build(name, bounds, 0), None, 12, log=path, resume=records)
+    cols = [*(f"x{i}" for i in range(d)), "y"]
+    assert resumed[cols].values.tolist() == reference[cols].values.tolist()
+    again = build(name, bounds, 0)
+    assert replay(again, read_log(path)) == 12
