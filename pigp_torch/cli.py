@@ -307,7 +307,7 @@ def cmd_bench_simulator(args) -> int:
 
 # ----------------------------------------------------------------------------- parser
 #: Modules of ``pigp_torch.commands`` that register further sub-commands.
-COMMAND_MODULES: tuple[str, ...] = ("optimize",)
+COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim")
 
 
 def build_parser() -> argparse.ArgumentParser:

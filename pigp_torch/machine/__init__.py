@@ -7,10 +7,12 @@ from pigp_torch.machine.base import (
     max_step_tensor,
     ramp,
 )
+from pigp_torch.machine.epics import EpicsMachine
 from pigp_torch.machine.errors import MachineError, ReadbackError, ReadError
 from pigp_torch.machine.simulated import SimulatedMachine
 
 __all__ = [
+    "EpicsMachine",
     "GuardedMachine",
     "Machine",
     "MachineError",

@@ -1,0 +1,85 @@
+r"""EPICS Channel Access tools: a simulated ring served as an IOC, for tests and demos.
+
+* :mod:`pigp_torch.epics.ioc` — a caproto IOC (``caproto.server``) that serves a
+  :class:`~pigp_torch.simulation.Spear3Coupling` ring with noise: per knob a setpoint PV
+  ``<knob>:CurrSetpt`` and a readback ``<knob>:Curr1``, the loss rate ``<prefix>BeamLossRate``
+  and fault-injection switches; :func:`~pigp_torch.epics.ioc.start_sim_ioc` launches it in a
+  subprocess on the loopback interface for tests and demos.
+* The client side is :class:`pigp_torch.machine.epics.EpicsMachine`.
+
+This package imports nothing heavy (no caproto, no torch): the ``pigp`` command-line parser uses
+:func:`add_ioc_arguments` at start-up. Import :mod:`pigp_torch.epics.ioc` for the server itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+#: Default prefix of the ring-wide PVs (loss rate and simulator switches).
+DEFAULT_PREFIX = "SPEAR:"
+#: PV name suffixes (appended to the prefix / knob name).
+LOSS_RATE_SUFFIX = "BeamLossRate"
+SETPOINT_SUFFIX = ":CurrSetpt"
+READBACK_SUFFIX = ":Curr1"
+NAN_READINGS_SUFFIX = "Sim:NanReadings"
+READBACK_DELAY_SUFFIX = "Sim:ReadbackDelay"
+#: Loopback: the simulated IOC never listens on an outside interface.
+LOOPBACK = "127.0.0.1"
+
+
+def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Options of the simulated IOC (``pigp serve-sim`` and ``python -m pigp_torch.epics.ioc``)."""
+    p.add_argument(
+        "--seed", type=int, default=1, help="error seed of the simulated ring (default 1)"
+    )
+    p.add_argument(
+        "--knobs",
+        default="paper13",
+        help="paper13 (default), powered14, all72, or a comma-separated list of windings",
+    )
+    p.add_argument(
+        "--optics", default="achromat", choices=["achromat", "low_emittance"], help="ring optics"
+    )
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=0.04,
+        help="standard deviation of the loss-rate noise, mA/min (default 0.04)",
+    )
+    p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default 0)")
+    p.add_argument(
+        "--prefix",
+        default=DEFAULT_PREFIX,
+        help=f"prefix of the loss-rate and simulator PVs (default {DEFAULT_PREFIX!r})",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        default=5064,
+        help="Channel Access server port, UDP search and first TCP port tried (default 5064)",
+    )
+    p.add_argument(
+        "--update-period",
+        type=float,
+        default=0.1,
+        help="seconds between loss-rate updates (default 0.1)",
+    )
+    p.add_argument(
+        "--readback-delay",
+        type=float,
+        default=0.0,
+        help="seconds before a knob readback follows its setpoint (default 0)",
+    )
+    return p
+
+
+__all__ = [
+    "DEFAULT_PREFIX",
+    "LOOPBACK",
+    "LOSS_RATE_SUFFIX",
+    "NAN_READINGS_SUFFIX",
+    "READBACK_DELAY_SUFFIX",
+    "READBACK_SUFFIX",
+    "SETPOINT_SUFFIX",
+    "add_ioc_arguments",
+]
