@@ -324,7 +324,7 @@ def cmd_bench_simulator(args) -> int:
 
 # ----------------------------------------------------------------------------- parser
 #: Modules of ``pigp_torch.commands`` that register further sub-commands.
-COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim")
+COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim", "bench_bo")
 
 
 def build_parser() -> argparse.ArgumentParser:

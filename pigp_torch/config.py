@@ -27,6 +27,10 @@ Methods (``method.name``; ``method.options`` are checked against the builder's a
 * ``pigp``: physics-informed BayesOpt, as :func:`pigp_torch.benchmark.methods.build_pigp`: kernel
   (``kernel``: rbf/rq), mean (``mean``: f_inf/zero/float) and noise from the prior; BayesOpt
   options over :data:`pigp_torch.benchmark.methods.BO_DEFAULTS` (UCB, beta 4, trust box 0.3).
+* ``pigp-physics``: :class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO` (the physics form of
+  the loss rate fitted online, shape from the prior; options ``beta``, ``step_limit``,
+  ``n_starts``, ``exploit_every`` and the model's ``center_std``, ``log_c_std``,
+  ``log_beta_std``, ``residual_std``, ``noise``); needs a prior file.
 * ``ml2``: BayesOpt with the ML-II diagonal GP, with no archive (a live machine has none at hand):
   hyperparameters fitted on the run data every ``refit_every`` asks (warm-started); ``noise``
   fixes the noise (``None``: learned).
@@ -62,7 +66,7 @@ from pydantic import (
 
 from pigp_torch._utils import DTYPE
 
-METHOD_NAMES = ("pigp", "ml2", "nelder-mead", "rcds")
+METHOD_NAMES = ("pigp", "pigp-physics", "ml2", "nelder-mead", "rcds")
 
 
 class ConfigError(ValueError):
@@ -131,7 +135,7 @@ class MethodConfig(_Section):
     """The optimizer: ``name`` (one of :data:`METHOD_NAMES`), its ``options`` and its ``seed``
     (BayesOpt's per-ask seed; Nelder–Mead and RCDS are deterministic)."""
 
-    name: Literal["pigp", "ml2", "nelder-mead", "rcds"]
+    name: Literal["pigp", "pigp-physics", "ml2", "nelder-mead", "rcds"]
     seed: int = 0
     options: dict[str, Any] = Field(default_factory=dict)
 
@@ -228,8 +232,10 @@ class RunConfig(_Section):
                     if empty:
                         raise ValueError(f"machine.{key}: empty PV name for knobs {empty}")
         _check_method(self.method, self.objective)
-        if self.method.name == "pigp" and self.prior is None:
-            raise ValueError("prior: method pigp needs a prior file (pigp build-prior)")
+        if self.method.name in ("pigp", "pigp-physics") and self.prior is None:
+            raise ValueError(
+                f"prior: method {self.method.name} needs a prior file (pigp build-prior)"
+            )
         if self.prior is not None:
             self._prior = _load_prior(self.prior, names)
         return self
@@ -275,6 +281,11 @@ def method_options(name: str) -> set[str]:
         return params(BayesOpt, "model", "seed") | {"kernel", "mean"}
     if name == "ml2":
         return params(BayesOpt, "model", "seed") | {"refit_every", "noise"}
+    if name == "pigp-physics":
+        from pigp_torch.optimizers.physics_bo import PhysicsModelBO
+
+        model = {"center_std", "log_c_std", "log_beta_std", "residual_std", "noise", "max_iter"}
+        return params(PhysicsModelBO, "prior", "seed", "model_options") | model
     if name == "nelder-mead":
         return params(NelderMead)
     if name == "rcds":
@@ -290,9 +301,10 @@ def _check_method(method: MethodConfig, objective: ObjectiveConfig) -> None:
             f"method.options: unknown option(s) {unknown} for {method.name} "
             f"(allowed: {', '.join(sorted(allowed))})"
         )
-    if method.name == "pigp" and not objective.maximize:
+    if method.name in ("pigp", "pigp-physics") and not objective.maximize:
         raise ValueError(
-            "method pigp needs objective.maximize: true (the physics prior describes a peak)"
+            f"method {method.name} needs objective.maximize: true "
+            "(the physics prior describes a peak)"
         )
 
 
@@ -435,6 +447,10 @@ def build_optimizer(config: RunConfig):
             return BayesOpt(
                 bounds, factory, maximize=maximize, seed=seed, **{**BO_DEFAULTS, **opts}
             )
+        if name == "pigp-physics":
+            from pigp_torch.optimizers.physics_bo import PhysicsModelBO
+
+            return PhysicsModelBO(bounds, config.get_prior(), seed=seed, **opts)
         if name == "nelder-mead":
             return NelderMead(bounds, maximize=maximize, **opts)
         return RCDS(bounds, maximize=maximize, **opts)

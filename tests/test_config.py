@@ -20,6 +20,7 @@ from pigp_torch.config import (
     validate_config,
 )
 from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
+from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.runlog import RunLog, read_log
 
@@ -212,6 +213,14 @@ def test_each_method_is_built_with_its_options(tmp_path):
     assert isinstance(rc.optimizer, RCDS) and rc.optimizer.noise == 0.1
     assert {"kernel", "mean", "step_limit", "num_restarts"} <= method_options("pigp")
     assert "refit_every" in method_options("ml2") and "model" not in method_options("ml2")
+    phys = build_run(
+        validate_config(
+            sim(method={"name": "pigp-physics", "options": {"residual_std": 0.0}}, **base)
+        )
+    )
+    assert isinstance(phys.optimizer, PhysicsModelBO) and phys.optimizer.step_limit == 0.6
+    assert phys.optimizer.model.residual_std == 0.0
+    assert {"center_std", "exploit_every"} <= method_options("pigp-physics")
 
 
 def test_sim_bounds_outside_the_simulator_range_are_refused():

@@ -21,7 +21,11 @@ def test_notebook_executes(path, monkeypatch):
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.get("output_type") == "error"]
     text = "".join(o.get("text", "") + o.get("data", {}).get("text/plain", "") for o in outputs)
-    expected = {"physics_prior": "relative Frobenius", "compare_optimizers": "nelder-mead"}
+    expected = {
+        "physics_prior": "relative Frobenius",
+        "compare_optimizers": "nelder-mead",
+        "xopt_example": "max relative difference",
+    }
     assert expected.get(path.stem, "") in text
 
 

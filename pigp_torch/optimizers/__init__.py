@@ -2,7 +2,9 @@
 
 from pigp_torch.optimizers.base import AskTellOptimizer, check_bounds
 from pigp_torch.optimizers.bayesopt import BayesOpt
+from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.nelder_mead import NelderMead
+from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.optimizers.rcds import RCDS
 
 #: Registry used by the CLI and configuration files.
@@ -12,4 +14,13 @@ OPTIMIZERS = {
     RCDS.name: RCDS,
 }
 
-__all__ = ["OPTIMIZERS", "RCDS", "AskTellOptimizer", "BayesOpt", "NelderMead", "check_bounds"]
+__all__ = [
+    "OPTIMIZERS",
+    "RCDS",
+    "AskTellOptimizer",
+    "BayesOpt",
+    "FastBayesOpt",
+    "NelderMead",
+    "PhysicsModelBO",
+    "check_bounds",
+]
