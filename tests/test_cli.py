@@ -69,18 +69,23 @@ def test_compare_writes_tables_and_figures(tmp_path, capsys):
 
 
 def test_demo_small(tmp_path):
-    """`pigp demo` end to end at toy size: both methods run on the machine, prior saved."""
+    """`pigp demo` end to end at toy size: the three methods run on the machine, prior saved."""
     out = tmp_path / "demo"
     argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
     assert main([*argv, "-o", str(out)]) == 0
     import pandas as pd
 
     runs = pd.read_csv(out / "runs.csv")
-    assert sorted(set(runs["method"])) == ["ml2", "pigp"] and len(runs) == 8
+    assert sorted(set(runs["method"])) == ["ml2", "pigp", "pigp-physics"] and len(runs) == 12
     assert (runs["machine_seed"] == 1).all()
     assert PhysicsPrior.load(out / "prior.json").provenance["surrogate_of"].endswith("=0)")
     with pytest.raises(SystemExit):
         build_parser().parse_args(["demo", "--target"])
+
+
+def test_demo_refuses_unknown_method(capsys):
+    assert main(["demo", "--methods", "pigp", "no-such-method"]) == 2
+    assert "unknown method(s) ['no-such-method']" in capsys.readouterr().err
 
 
 def test_demo_refuses_same_seed(capsys):
