@@ -24,7 +24,7 @@ from botorch.models.model import Model
 from botorch.optim import optimize_acqf
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.base import AskTellOptimizer, check_ucb_options, trust_box
 
 ACQUISITIONS = ("ucb", "ei", "logei")
 TRUST_CENTERS = ("best_observed", "best_mean")
@@ -125,10 +125,7 @@ class BayesOpt(AskTellOptimizer):
         acquisition = str(acquisition).lower()
         if acquisition not in ACQUISITIONS:
             raise ValueError(f"acquisition must be one of {ACQUISITIONS}, got {acquisition!r}")
-        if not (float(beta) >= 0.0 and float(beta) < float("inf")):
-            raise ValueError(f"beta must be finite and >= 0, got {beta}")
-        if step_limit is not None and not (0.0 < float(step_limit) < float("inf")):
-            raise ValueError(f"step_limit must be positive and finite (or None), got {step_limit}")
+        check_ucb_options(beta, step_limit)
         if trust_center not in TRUST_CENTERS:
             raise ValueError(f"trust_center must be one of {TRUST_CENTERS}, got {trust_center!r}")
         if int(num_restarts) < 1 or int(raw_samples) < int(num_restarts):
@@ -159,12 +156,7 @@ class BayesOpt(AskTellOptimizer):
 
     def trust_box(self, center: torch.Tensor) -> torch.Tensor:
         r"""The ``2 x d`` search box around ``center`` (``d``), see the class docstring."""
-        lower, upper = self.bounds
-        if self.step_limit is None:
-            return self.bounds.clone()
-        c = torch.minimum(torch.maximum(center, lower), upper)
-        half = self.step_limit * (upper - lower) / 2
-        return torch.stack([torch.maximum(lower, c - half), torch.minimum(upper, c + half)])
+        return trust_box(self.bounds, center, self.step_limit)
 
     def _center(self, model: Model, X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
         if self.trust_center == "best_observed":

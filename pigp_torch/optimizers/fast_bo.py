@@ -41,7 +41,7 @@ from gpytorch import settings as gpytorch_settings
 
 from pigp_torch._utils import DTYPE, as_knob_tensor
 from pigp_torch.kernels._base import precision_cholesky
-from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.base import AskTellOptimizer, check_ucb_options, trust_box
 from pigp_torch.optimizers.bayesopt import TRUST_CENTERS
 
 #: Acquisitions of :class:`FastBayesOpt` (the names of :class:`BayesOpt`).
@@ -596,10 +596,7 @@ class FastBayesOpt(AskTellOptimizer):
         acquisition = str(acquisition).lower()
         if acquisition not in FAST_ACQUISITIONS:
             raise ValueError(f"acquisition must be one of {FAST_ACQUISITIONS}, got {acquisition!r}")
-        if not (float(beta) >= 0.0 and float(beta) < float("inf")):
-            raise ValueError(f"beta must be finite and >= 0, got {beta}")
-        if step_limit is not None and not (0.0 < float(step_limit) < float("inf")):
-            raise ValueError(f"step_limit must be positive and finite (or None), got {step_limit}")
+        check_ucb_options(beta, step_limit)
         if trust_center not in TRUST_CENTERS:
             raise ValueError(f"trust_center must be one of {TRUST_CENTERS}, got {trust_center!r}")
         if int(num_restarts) < 0 or int(raw_samples) < int(num_restarts):
@@ -706,12 +703,7 @@ class FastBayesOpt(AskTellOptimizer):
 
     def trust_box(self, center: torch.Tensor) -> torch.Tensor:
         r"""The ``2 x d`` search box around ``center`` (``d``), as :meth:`BayesOpt.trust_box`."""
-        lower, upper = self.bounds
-        if self.step_limit is None:
-            return self.bounds.clone()
-        c = torch.minimum(torch.maximum(center, lower), upper)
-        half = self.step_limit * (upper - lower) / 2
-        return torch.stack([torch.maximum(lower, c - half), torch.minimum(upper, c + half)])
+        return trust_box(self.bounds, center, self.step_limit)
 
     def _center(self) -> torch.Tensor:
         if self.trust_center == "best_observed":

@@ -27,7 +27,7 @@ import torch
 from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
-from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.base import AskTellOptimizer, check_ucb_options, trust_box
 from pigp_torch.prior import PhysicsPrior
 
 
@@ -71,10 +71,7 @@ class PhysicsModelBO(AskTellOptimizer):
         super().__init__(bounds, maximize=maximize)
         if not self.maximize:
             raise ValueError("PhysicsModelBO models a peak: it maximizes only")
-        if not (math.isfinite(float(beta)) and float(beta) >= 0):
-            raise ValueError(f"beta must be finite and >= 0, got {beta}")
-        if step_limit is not None and not (0.0 < float(step_limit) < float("inf")):
-            raise ValueError(f"step_limit must be positive and finite (or None), got {step_limit}")
+        check_ucb_options(beta, step_limit)
         if int(n_starts) < 0:
             raise ValueError(f"n_starts must be >= 0, got {n_starts}")
         self.model = InverseSqrtPeakModel(prior, self.bounds, **model_options)
@@ -89,12 +86,7 @@ class PhysicsModelBO(AskTellOptimizer):
 
     def trust_box(self, center: torch.Tensor) -> torch.Tensor:
         """The ``2 x d`` search box around ``center`` (same rule as :class:`BayesOpt`)."""
-        lower, upper = self.bounds
-        if self.step_limit is None:
-            return self.bounds.clone()
-        c = torch.minimum(torch.maximum(center, lower), upper)
-        half = self.step_limit * (upper - lower) / 2
-        return torch.stack([torch.maximum(lower, c - half), torch.minimum(upper, c + half)])
+        return trust_box(self.bounds, center, self.step_limit)
 
     def acquisition(self, X: torch.Tensor, beta: float | None = None) -> torch.Tensor:
         r""":math:`\mu + \sqrt\beta\,\sigma` at ``n x d`` settings (after a fit)."""
