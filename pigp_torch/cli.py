@@ -220,6 +220,7 @@ def _write_comparison(df, out: Path, title: str) -> None:
 
 def cmd_compare(args) -> int:
     from pigp_torch.benchmark import run_benchmark
+    from pigp_torch.simulation.lattice import knob_names_for
 
     df = run_benchmark(
         args.methods,
@@ -228,8 +229,11 @@ def cmd_compare(args) -> int:
         budgets={"gp": args.budget_gp, "direct": args.budget_direct},
         n_workers=args.workers,
         progress=True,
+        knobs=args.knobs,
+        scheduler=args.scheduler,
     )
-    _write_comparison(df, args.out, f"spear3-13, model seed {args.model_seed}")
+    title = f"spear3-{len(knob_names_for(args.knobs))}, model seed {args.model_seed}"
+    _write_comparison(df, args.out, title)
     return 0
 
 
@@ -401,7 +405,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
     p.add_argument("--budget-gp", type=int, default=100, help="evaluations for GP methods")
     p.add_argument("--budget-direct", type=int, default=300, help="for Nelder-Mead and RCDS")
-    p.add_argument("--workers", type=int, default=1, help="parallel processes")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="parallel processes here (with --scheduler local: Dask worker processes)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the methods x seeds grid on a Dask cluster, one task per run: a scheduler "
+        "address (tcp://host:8786) or 'local' (a LocalCluster of --workers processes on "
+        "127.0.0.1); same numbers as a local run (default: local processes, no Dask)",
+    )
+    p.add_argument(
+        "--knobs",
+        default="paper13",
+        choices=["paper13", "powered14", "all72"],
+        help="skew windings used as knobs by the machines and the model ring (default paper13)",
+    )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
     p.set_defaults(func=cmd_compare)
 
@@ -461,7 +484,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, ConnectionError) as err:
         print(f"pigp {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,10 +1,12 @@
 r"""The "spear3-13" benchmark protocol (DESIGN.md §5): runs methods on simulated machines.
 
-* Machine ``s``: ``Spear3Coupling(error_seed=s)`` read through a
+* Machine ``s``: ``Spear3Coupling(error_seed=s, knobs=knobs)`` read through a
   :class:`~pigp_torch.machine.SimulatedMachine` with i.i.d. :math:`\mathcal N(0, 0.04^2)` noise;
   every run starts at all skews zero.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
-  with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors).
+  with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors),
+  with the same knob set as the machines (``knobs="paper13"``: the 13 windings of the paper;
+  ``"all72"``: every skew winding of the ring).
 * Score: the noise-free loss rate :math:`f` at every evaluated setting, the start value
   :math:`f_0 = f(0)`, the machine's true optimum :math:`f^*` (multi-start gradient search on the
   differentiable model, :meth:`~pigp_torch.simulation.Spear3Coupling.optimum`), and the gain
@@ -15,7 +17,8 @@ r"""The "spear3-13" benchmark protocol (DESIGN.md §5): runs methods on simulate
 Seeds. The machine's noise stream is seeded by the machine seed alone (common random numbers:
 every method sees the same noise sequence on a machine); the optimizer (and, for ML-II, the
 archive) by a stable hash of ``(method name, machine seed)``. Runs are independent, so a process
-pool gives the same table as a serial loop.
+pool, or a Dask cluster (:mod:`~pigp_torch.benchmark.distributed`), gives the same table as a
+serial loop.
 """
 
 from __future__ import annotations
@@ -32,13 +35,19 @@ from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.prior import PhysicsPrior, prior_from_model
 from pigp_torch.simulation import Spear3Coupling
+from pigp_torch.simulation.lattice import knob_names_for
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
 
-_OPTIMA: dict[tuple[int, int], float] = {}
+_OPTIMA: dict[tuple, float] = {}
+
+
+def _knob_key(knobs):
+    """A hashable form of a knob selection (a set name or a sequence of winding names)."""
+    return knobs if isinstance(knobs, str) else tuple(str(k) for k in knobs)
 
 
 def run_seed(method: str, machine_seed: int) -> int:
@@ -46,20 +55,28 @@ def run_seed(method: str, machine_seed: int) -> int:
     return zlib.crc32(f"{method}|{int(machine_seed)}".encode()) & 0x7FFFFFFF
 
 
-def machine_optimum(machine_seed: int, n_starts: int = 8) -> float:
-    """:math:`f^*` of machine ``machine_seed`` from ``n_starts`` Sobol starts of L-BFGS-B
-    (:meth:`~pigp_torch.simulation.Spear3Coupling.optimum`); cached per process, ~1 s a start."""
-    key = (int(machine_seed), int(n_starts))
+def machine_optimum(machine_seed: int, n_starts: int = 8, *, knobs="paper13") -> float:
+    """:math:`f^*` of machine ``machine_seed`` with knob set ``knobs`` from ``n_starts`` Sobol
+    starts of L-BFGS-B (:meth:`~pigp_torch.simulation.Spear3Coupling.optimum`); cached per
+    process, ~1 s a start at 13 knobs."""
+    key = (int(machine_seed), int(n_starts), _knob_key(knobs))
     if key not in _OPTIMA:
-        _OPTIMA[key] = float(Spear3Coupling(key[0]).optimum(n_starts=key[1])[1])
+        sim = Spear3Coupling(key[0], knobs=knobs)
+        _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
     return _OPTIMA[key]
 
 
 def model_prior(
-    model_seed: int = 0, *, noise: float = NOISE, n_starts: int = 16, seed: int = 0
+    model_seed: int = 0,
+    *,
+    noise: float = NOISE,
+    n_starts: int = 16,
+    seed: int = 0,
+    knobs="paper13",
 ) -> PhysicsPrior:
-    """The physics prior from the model ring ``Spear3Coupling(model_seed)`` (~3 s)."""
-    sim = Spear3Coupling(int(model_seed))
+    """The physics prior from the model ring ``Spear3Coupling(model_seed, knobs=knobs)``
+    (~3 s at 13 knobs)."""
+    sim = Spear3Coupling(int(model_seed), knobs=knobs)
     return prior_from_model(
         sim.loss_rate,
         sim.bounds,
@@ -100,9 +117,22 @@ def run_one(
     noise: float = NOISE,
     archive_size: int = 300,
     optimum_starts: int = 8,
+    knobs="paper13",
 ) -> pd.DataFrame:
-    """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows)."""
-    sim = Spear3Coupling(int(machine_seed))
+    """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
+
+    ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
+
+    Raises:
+        ValueError: ``prior`` is for other knobs than ``knobs`` (names must match in order).
+    """
+    sim = Spear3Coupling(int(machine_seed), knobs=knobs)
+    if list(prior.knob_names) != list(sim.knob_names):
+        raise ValueError(
+            f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
+            f"{sim.dim} knobs {sim.knob_names[:3]}... (knobs={knobs!r}): compute the prior "
+            "from a model ring with the same knobs"
+        )
     machine = SimulatedMachine(sim, noise=noise, seed=int(machine_seed))
     ctx = RunContext(
         machine=machine,
@@ -115,7 +145,14 @@ def run_one(
     x0 = torch.zeros(sim.dim, dtype=DTYPE)
     table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
     table.insert(1, "machine_seed", int(machine_seed))
-    return score_run(table, sim, machine_optimum(machine_seed, optimum_starts))
+    if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
+        return score_run(table, sim, float("nan"))
+    return score_run(table, sim, machine_optimum(machine_seed, optimum_starts, knobs=knobs))
+
+
+def _advance(bar, label: str) -> None:
+    bar.set_postfix_str(f"finished {label}", refresh=False)
+    bar.update(1)
 
 
 def _run_job(args) -> pd.DataFrame:
@@ -136,6 +173,8 @@ def run_benchmark(
     n_workers: int = 1,
     prior: PhysicsPrior | None = None,
     optimum_starts: int = 8,
+    knobs="paper13",
+    scheduler: str | None = None,
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
@@ -150,10 +189,19 @@ def run_benchmark(
         noise: measurement noise standard deviation (mA/min); also the prior's :math:`\sigma_n`.
         archive_size: archive readings for data-informed methods (ML-II).
         progress: tqdm bar over runs.
-        n_workers: processes (``>1``: a ``ProcessPoolExecutor``; same numbers as serial).
+        n_workers: processes (``>1``: a ``ProcessPoolExecutor``; same numbers as serial); with
+            ``scheduler="local"`` the number of Dask worker processes.
         prior: use this prior instead of computing it from ``model_seed`` (it must come from a
-            model, not from a machine under test).
-        optimum_starts: starts of the search for each machine's :math:`f^*`.
+            model, not from a machine under test, with the same ``knobs``).
+        optimum_starts: starts of the search for each machine's :math:`f^*`; ``0``: no search,
+            ``f_star`` and ``gain_fraction`` are NaN (score by ``best_f_true``; for knob sets
+            where the search is too slow or unreliable, e.g. 72 knobs).
+        knobs: knob set of the machines and the model ring (``"paper13"``, ``"powered14"``,
+            ``"all72"`` or winding names, see :class:`~pigp_torch.simulation.Spear3Coupling`).
+        scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
+            scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
+            127.0.0.1): one Dask task per run (:func:`~pigp_torch.benchmark.distributed.
+            run_on_dask`), same numbers as a local run.
 
     Returns:
         DataFrame with columns ``method, machine_seed, step, <knobs>, y, ask_time_s,
@@ -163,7 +211,8 @@ def run_benchmark(
 
     Raises:
         ValueError: ``model_seed`` among ``machine_seeds``, duplicate seeds, unknown methods or
-            budget classes, bad budgets/noise/worker counts.
+            budget classes, bad budgets/noise/worker counts, a prior for other knobs.
+        ConnectionError: the Dask scheduler cannot be reached (or has no workers) in time.
     """
     specs = resolve_methods(methods)
     seeds = [int(s) for s in machine_seeds]
@@ -187,8 +236,20 @@ def run_benchmark(
         raise ValueError(f"noise must be positive and finite, got {noise}")
     if int(n_workers) < 1:
         raise ValueError(f"n_workers must be >= 1, got {n_workers}")
+    if int(optimum_starts) < 0:
+        raise ValueError(f"optimum_starts must be >= 0, got {optimum_starts}")
+    if scheduler is not None:  # an unreachable cluster fails before the prior is computed
+        from pigp_torch.benchmark.distributed import check_scheduler
+
+        check_scheduler(scheduler)
     if prior is None:
-        prior = model_prior(model_seed, noise=noise)
+        prior = model_prior(model_seed, noise=noise, knobs=knobs)
+    names = knob_names_for(knobs)
+    if list(prior.knob_names) != names:
+        raise ValueError(
+            f"the prior is for {prior.dim} knobs, the machines have {len(names)} "
+            f"(knobs={knobs!r}): compute the prior from a model ring with the same knobs"
+        )
 
     jobs = [
         (
@@ -200,6 +261,7 @@ def run_benchmark(
                 "noise": float(noise),
                 "archive_size": int(archive_size),
                 "optimum_starts": int(optimum_starts),
+                "knobs": knobs,
             },
         )
         for spec in specs
@@ -212,7 +274,18 @@ def run_benchmark(
         bar = tqdm(total=len(jobs), desc="benchmark runs")
     tables = []
     try:
-        if int(n_workers) == 1:
+        if scheduler is not None:
+            from pigp_torch.benchmark.distributed import run_on_dask
+
+            tables = run_on_dask(
+                _run_job,
+                jobs,
+                scheduler=scheduler,
+                n_workers=int(n_workers),
+                labels=[f"{spec.name} seed {seed}" for spec, seed, _, _ in jobs],
+                on_done=None if bar is None else lambda _, label: _advance(bar, label),
+            )
+        elif int(n_workers) == 1:
             for job in jobs:
                 tables.append(_run_job(job))
                 if bar is not None:

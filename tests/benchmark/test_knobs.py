@@ -1,0 +1,49 @@
+"""Tests of the benchmark's knob selection: machines, prior and f* all use the same knobs."""
+
+import pytest
+import torch
+
+from pigp_torch.benchmark import METHODS, machine_optimum, model_prior, run_benchmark, run_one
+from pigp_torch.simulation import Spear3Coupling
+
+#: Three windings of the ring (cheap 3-D problems: prior and f* in about a second).
+THREE = ["01G-QSS4", "05G-QSS2", "11G-QSS3"]
+
+
+@pytest.fixture(scope="module")
+def prior3():
+    return model_prior(0, n_starts=2, knobs=THREE)
+
+
+def test_three_knob_benchmark_uses_those_knobs(prior3):
+    """A run on 3 chosen windings: knob columns, noise-free values and f* of the 3-knob
+    machine (not the 13-knob one)."""
+    assert prior3.knob_names == THREE
+    df = run_benchmark(
+        ["nelder-mead"],
+        [1],
+        budgets={"direct": 5},
+        prior=prior3,
+        knobs=THREE,
+        progress=False,
+        optimum_starts=2,
+    )
+    assert list(df.columns[3:6]) == THREE and "01G-QSS1" not in df.columns
+    sim = Spear3Coupling(1, knobs=THREE)
+    X = torch.tensor(df[THREE].to_numpy(), dtype=torch.float64)
+    assert df["f_true"].to_numpy() == pytest.approx(sim.loss_rate(X).detach().numpy(), rel=1e-12)
+    f_star3 = machine_optimum(1, 2, knobs=THREE)
+    assert df["f_star"].unique().tolist() == [f_star3]
+    assert f_star3 == pytest.approx(sim.optimum(n_starts=2)[1], rel=1e-12)
+    assert machine_optimum(1, 2, knobs=THREE[:2]) < f_star3  # cached per knob set
+    assert f_star3 >= df["f_true"].max()
+
+
+def test_prior_for_other_knobs_is_refused(prior3):
+    """A 3-knob prior cannot drive the 13- or 72-knob machines (run_benchmark and run_one)."""
+    with pytest.raises(ValueError, match=r"the prior is for 3 knobs, the machines have 72"):
+        run_benchmark(["pigp"], [1], knobs="all72", progress=False, prior=prior3)
+    with pytest.raises(ValueError, match=r"the prior is for 3 knobs .* the machines have 13"):
+        run_one(METHODS["pigp"], 1, prior3, budget=2)
+    with pytest.raises(ValueError, match="unknown knob set 'all73'"):
+        run_benchmark(["pigp"], [1], knobs="all73", progress=False, prior=prior3)
