@@ -8,21 +8,11 @@ import sys
 def cmd_serve_sim(args) -> int:
     import torch
 
-    from pigp_torch.epics.ioc import make_sim_ioc, serve
+    from pigp_torch.epics.ioc import serve, sim_ioc_from_args
 
     torch.set_num_threads(1)
-    knobs = args.knobs.split(",") if "," in args.knobs else args.knobs
     print(f"building simulated ring (error seed {args.seed}, knobs {args.knobs})", flush=True)
-    ioc = make_sim_ioc(
-        args.seed,
-        knobs=knobs,
-        optics=args.optics,
-        noise=args.noise,
-        noise_seed=args.noise_seed,
-        prefix=args.prefix,
-        update_period=args.update_period,
-        readback_delay=args.readback_delay,
-    )
+    ioc = sim_ioc_from_args(args)
     print(
         f"clients: EPICS_CA_ADDR_LIST=127.0.0.1:{args.port} EPICS_CA_AUTO_ADDR_LIST=NO; "
         "stop with Ctrl-C",

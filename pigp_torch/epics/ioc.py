@@ -418,6 +418,20 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
             signal.signal(signal.SIGTERM, previous)
 
 
+def sim_ioc_from_args(args):
+    """The IOC described by the options of :func:`pigp_torch.epics.add_ioc_arguments`."""
+    return make_sim_ioc(
+        args.seed,
+        knobs=args.knobs.split(",") if "," in args.knobs else args.knobs,
+        optics=args.optics,
+        noise=args.noise,
+        noise_seed=args.noise_seed,
+        prefix=args.prefix,
+        update_period=args.update_period,
+        readback_delay=args.readback_delay,
+    )
+
+
 def main(argv=None) -> int:
     """``python -m pigp_torch.epics.ioc``: serve the simulated ring (options as ``serve-sim``)."""
     import argparse
@@ -429,16 +443,7 @@ def main(argv=None) -> int:
     )
     add_ioc_arguments(p)
     args = p.parse_args(argv)
-    ioc = make_sim_ioc(
-        args.seed,
-        knobs=args.knobs.split(",") if "," in args.knobs else args.knobs,
-        optics=args.optics,
-        noise=args.noise,
-        noise_seed=args.noise_seed,
-        prefix=args.prefix,
-        update_period=args.update_period,
-        readback_delay=args.readback_delay,
-    )
+    ioc = sim_ioc_from_args(args)
     # The ring's large, long-lived object graph need not be traversed by the garbage collector,
     # neither while serving nor at exit (that pass took ~2 s on a busy host).
     gc.freeze()

@@ -27,6 +27,20 @@ def check_ucb_options(beta, step_limit) -> tuple[float, float | None]:
     return float(beta), None if step_limit is None else float(step_limit)
 
 
+def check_search_options(
+    trust_center: str, centers, num_restarts: int, raw_samples: int, min_restarts: int = 1
+) -> None:
+    """Validate a trust-box centre rule (one of ``centers``) and the acquisition-search counts
+    (``num_restarts >= min_restarts`` and ``raw_samples >= num_restarts``)."""
+    if trust_center not in centers:
+        raise ValueError(f"trust_center must be one of {centers}, got {trust_center!r}")
+    if int(num_restarts) < min_restarts or int(raw_samples) < int(num_restarts):
+        raise ValueError(
+            f"need num_restarts >= {min_restarts} and raw_samples >= num_restarts; "
+            f"got {num_restarts}, {raw_samples}"
+        )
+
+
 def trust_box(bounds: torch.Tensor, center: torch.Tensor, step_limit: float | None) -> torch.Tensor:
     r"""The ``2 x d`` search box of half-width ``step_limit`` (a fraction of each knob's
     half-range) around ``center`` (clamped into ``bounds``), intersected with ``bounds``.

@@ -24,7 +24,12 @@ from botorch.models.model import Model
 from botorch.optim import optimize_acqf
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.optimizers.base import AskTellOptimizer, check_ucb_options, trust_box
+from pigp_torch.optimizers.base import (
+    AskTellOptimizer,
+    check_search_options,
+    check_ucb_options,
+    trust_box,
+)
 
 ACQUISITIONS = ("ucb", "ei", "logei")
 TRUST_CENTERS = ("best_observed", "best_mean")
@@ -126,13 +131,7 @@ class BayesOpt(AskTellOptimizer):
         if acquisition not in ACQUISITIONS:
             raise ValueError(f"acquisition must be one of {ACQUISITIONS}, got {acquisition!r}")
         check_ucb_options(beta, step_limit)
-        if trust_center not in TRUST_CENTERS:
-            raise ValueError(f"trust_center must be one of {TRUST_CENTERS}, got {trust_center!r}")
-        if int(num_restarts) < 1 or int(raw_samples) < int(num_restarts):
-            raise ValueError(
-                f"need num_restarts >= 1 and raw_samples >= num_restarts; "
-                f"got {num_restarts}, {raw_samples}"
-            )
+        check_search_options(trust_center, TRUST_CENTERS, num_restarts, raw_samples)
         self.model_factory = model
         self.acquisition = acquisition
         self.beta = float(beta)

@@ -41,7 +41,12 @@ from gpytorch import settings as gpytorch_settings
 
 from pigp_torch._utils import DTYPE, as_knob_tensor
 from pigp_torch.kernels._base import precision_cholesky
-from pigp_torch.optimizers.base import AskTellOptimizer, check_ucb_options, trust_box
+from pigp_torch.optimizers.base import (
+    AskTellOptimizer,
+    check_search_options,
+    check_ucb_options,
+    trust_box,
+)
 from pigp_torch.optimizers.bayesopt import TRUST_CENTERS
 
 #: Acquisitions of :class:`FastBayesOpt` (the names of :class:`BayesOpt`).
@@ -597,13 +602,7 @@ class FastBayesOpt(AskTellOptimizer):
         if acquisition not in FAST_ACQUISITIONS:
             raise ValueError(f"acquisition must be one of {FAST_ACQUISITIONS}, got {acquisition!r}")
         check_ucb_options(beta, step_limit)
-        if trust_center not in TRUST_CENTERS:
-            raise ValueError(f"trust_center must be one of {TRUST_CENTERS}, got {trust_center!r}")
-        if int(num_restarts) < 0 or int(raw_samples) < int(num_restarts):
-            raise ValueError(
-                f"need num_restarts >= 0 and raw_samples >= num_restarts; "
-                f"got {num_restarts}, {raw_samples}"
-            )
+        check_search_options(trust_center, TRUST_CENTERS, num_restarts, raw_samples, 0)
         if int(n_previous) < 0:
             raise ValueError(f"n_previous must be >= 0, got {n_previous}")
         if method not in ("auto", *SOLVER_DEFAULTS):
