@@ -118,7 +118,10 @@ def test_yaml_and_json_files_load_with_paths_relative_to_the_file(tmp_path):
             r"unknown option\(s\) \['size'",
         ),
         (sim(method={"name": "pigp"}), r"prior: method pigp needs a prior file"),
-        (sim(method={"name": "simplex"}), r"method.name: Input should be 'pigp', 'ml2'"),
+        (
+            sim(method={"name": "simplex"}),
+            r"method.name: Input should be 'pigp', 'pigp-physics', 'ml2'",
+        ),
         (sim(machine={"kind": "tango"}), r"machine: Input tag 'tango'"),
         (sim(budget=0), r"budget: Input should be greater than or equal to 1"),
         (sim(objective={"pv": "X"}), r"objective.pv is for the epics machine"),
