@@ -234,7 +234,15 @@ def test_serve_sim_runs_in_the_foreground_and_stops_on_ctrl_c(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     log = tmp_path / "serve-sim.log"
     with open(log, "wb") as sink:  # a file, not a pipe: polling it never blocks
-        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, env=env)
+        # A job started in the background (nohup, CI runners) inherits SIGINT ignored, and Python
+        # then installs no KeyboardInterrupt handler: give the child the default disposition.
+        proc = subprocess.Popen(
+            cmd,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
     try:
         deadline = time.monotonic() + 90
         while "  SIM:Sim:NanReadings" not in (out := log.read_text()):
