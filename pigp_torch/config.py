@@ -29,8 +29,10 @@ Methods (``method.name``; ``method.options`` are checked against the builder's a
   options over :data:`pigp_torch.benchmark.methods.BO_DEFAULTS` (UCB, beta 4, trust box 0.3).
 * ``pigp-physics``: :class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO` (the physics form of
   the loss rate fitted online, shape from the prior; options ``beta``, ``step_limit``,
-  ``n_starts``, ``exploit_every`` and the model's ``center_std``, ``log_c_std``,
-  ``log_beta_std``, ``residual_std``, ``noise``); needs a prior file.
+  ``n_starts``, ``exploit_every``, the adaptive trust box ``adapt_box``, ``min_step_limit``,
+  ``success_streak``, ``failure_streak``, ``success_tol``, and the model's ``center_std``,
+  ``log_c_std``, ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``noise``); needs a prior
+  file.
 * ``ml2``: BayesOpt with the ML-II diagonal GP, with no archive (a live machine has none at hand):
   hyperparameters fitted on the run data every ``refit_every`` asks (warm-started); ``noise``
   fixes the noise (``None``: learned).
@@ -284,7 +286,8 @@ def method_options(name: str) -> set[str]:
     if name == "pigp-physics":
         from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 
-        model = {"center_std", "log_c_std", "log_beta_std", "residual_std", "noise", "max_iter"}
+        model = {"center_std", "log_c_std", "log_beta_std", "residual_std", "f_inf_std"}
+        model |= {"noise", "max_iter"}
         return params(PhysicsModelBO, "prior", "seed", "model_options") | model
     if name == "nelder-mead":
         return params(NelderMead)

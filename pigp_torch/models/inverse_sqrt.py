@@ -70,6 +70,9 @@ class InverseSqrtPeakModel:
         log_c_std: :math:`s_c`, prior std of :math:`\log c` around :math:`\log c_m`.
         log_beta_std: :math:`s_\beta`, prior std of :math:`\log\beta` around 0.
         residual_std: amplitude of the residual GP (objective units; ``0`` switches it off).
+        f_inf_std: if ``> 0``, the background is fitted too, as :math:`f_\infty + \delta` with
+            :math:`\delta \sim \mathcal N(0, s_f^2)` (objective units; the prior's
+            :math:`f_\infty` belongs to the model ring); ``0`` keeps :math:`f_\infty` fixed.
         max_iter: L-BFGS-B iterations per start.
 
     Raises:
@@ -86,6 +89,7 @@ class InverseSqrtPeakModel:
         log_c_std: float = 1.5,
         log_beta_std: float = 0.3,
         residual_std: float = 0.05,
+        f_inf_std: float = 0.0,
         max_iter: int = 300,
     ) -> None:
         self.bounds = check_bounds(bounds)
@@ -101,8 +105,10 @@ class InverseSqrtPeakModel:
         ):
             if not (math.isfinite(float(v)) and float(v) > 0):
                 raise ValueError(f"{name} must be positive and finite, got {v}")
-        if not (math.isfinite(float(residual_std)) and float(residual_std) >= 0):
-            raise ValueError(f"residual_std must be >= 0 and finite, got {residual_std}")
+        for name, v in (("residual_std", residual_std), ("f_inf_std", f_inf_std)):
+            if not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"{name} must be >= 0 and finite, got {v}")
+        self.f_inf_std = float(f_inf_std)
         self.f_inf = float(prior.f_inf)
         self.log_c_model = -2.0 * math.log(prior.f_x0 - prior.f_inf)
         self.B = 2.0 * math.exp(self.log_c_model) * prior.precision.to(DTYPE)
@@ -122,10 +128,22 @@ class InverseSqrtPeakModel:
     def dim(self) -> int:
         return self.B.shape[0]
 
+    @property
+    def n_params(self) -> int:
+        r""":math:`\theta = (\boldsymbol\mu, \log c, \log\beta[, \delta])` has this length."""
+        return self.dim + 2 + int(self.f_inf_std > 0)
+
     # -- the parametric form -------------------------------------------------------------------
     def prior_theta(self) -> Tensor:
-        r""":math:`\theta_0 = (\boldsymbol\mu_0, \log c_m, 0)`."""
-        return torch.cat([self.center0, torch.tensor([self.log_c_model, 0.0], dtype=DTYPE)])
+        r""":math:`\theta_0 = (\boldsymbol\mu_0, \log c_m, 0[, 0])`."""
+        tail = [self.log_c_model, 0.0] + [0.0] * (self.n_params - self.dim - 2)
+        return torch.cat([self.center0, torch.tensor(tail, dtype=DTYPE)])
+
+    def background(self, theta: Tensor | None = None):
+        r"""The background :math:`f_\infty` (+ the fitted :math:`\delta`) of ``theta``
+        (default: the fit)."""
+        theta = self._fitted() if theta is None else theta
+        return self.f_inf + theta[self.dim + 2] if self.f_inf_std > 0 else self.f_inf
 
     def g(self, X: Tensor, theta: Tensor) -> Tensor:
         r""":math:`g(\mathbf x;\theta)` for ``... x d`` settings."""
@@ -136,10 +154,10 @@ class InverseSqrtPeakModel:
     def form(self, X: Tensor, theta: Tensor | None = None) -> Tensor:
         r"""The parametric mean :math:`f_\infty + g^{-1/2}` (``theta`` default: the fit)."""
         theta = self._fitted() if theta is None else theta
-        return self.f_inf + torch.rsqrt(self.g(X, theta))
+        return self.background(theta) + torch.rsqrt(self.g(X, theta))
 
     def jacobian(self, X: Tensor) -> Tensor:
-        r"""``n x (d+2)`` analytic :math:`\partial f/\partial\theta` at the fitted
+        r"""``n x n_params`` analytic :math:`\partial f/\partial\theta` at the fitted
         :math:`\theta`."""
         theta = self._fitted()
         d = self.dim
@@ -151,7 +169,10 @@ class InverseSqrtPeakModel:
         dg = torch.cat(
             [-2.0 * beta * BD, c.expand(q.shape).unsqueeze(-1), (beta * q).unsqueeze(-1)], -1
         )
-        return dg * dfdg.unsqueeze(-1)
+        J = dg * dfdg.unsqueeze(-1)
+        if self.f_inf_std > 0:  # df/d(delta) = 1
+            J = torch.cat([J, torch.ones_like(q).unsqueeze(-1)], -1)
+        return J
 
     def center(self) -> Tensor:
         r"""The fitted centre :math:`\hat{\boldsymbol\mu}` (may lie outside the bounds)."""
@@ -159,7 +180,7 @@ class InverseSqrtPeakModel:
 
     def peak(self) -> float:
         r"""The fitted peak value :math:`f_\infty + \hat c^{-1/2}`."""
-        return self.f_inf + math.exp(-0.5 * float(self._fitted()[self.dim]))
+        return float(self.background()) + math.exp(-0.5 * float(self._fitted()[self.dim]))
 
     def _fitted(self) -> Tensor:
         if self.theta is None:
@@ -173,6 +194,8 @@ class InverseSqrtPeakModel:
         pen = (((theta[:d] - self.center0) / self.tau) ** 2).sum()
         pen = pen + ((theta[d] - self.log_c_model) / self.log_c_std) ** 2
         pen = pen + (theta[d + 1] / self.log_beta_std) ** 2
+        if self.f_inf_std > 0:
+            pen = pen + (theta[d + 2] / self.f_inf_std) ** 2
         return 0.5 * (r**2).sum() + 0.5 * pen
 
     def _linear_start(self, X: Tensor, Y: Tensor) -> Tensor | None:
@@ -194,7 +217,8 @@ class InverseSqrtPeakModel:
         reach = 3.0 * self.tau
         mu = torch.maximum(torch.minimum(mu, self.center0 + reach), self.center0 - reach)
         log_c = math.log(min(max(c, 1e-3), 1e4))
-        return torch.cat([mu, torch.tensor([log_c, 0.0], dtype=DTYPE)])
+        tail = [log_c, 0.0] + [0.0] * (self.n_params - d - 2)
+        return torch.cat([mu, torch.tensor(tail, dtype=DTYPE)])
 
     def fit(self, X, Y) -> float:
         r"""MAP fit to ``X`` (``n x d``), ``Y`` (``n``); returns the negative log posterior.
@@ -242,9 +266,10 @@ class InverseSqrtPeakModel:
 
     def _laplace(self, X: Tensor) -> None:
         J = self.jacobian(X)
-        prior_prec = torch.cat(
-            [self.tau**-2, torch.tensor([self.log_c_std**-2, self.log_beta_std**-2], dtype=DTYPE)]
-        )
+        tail = [self.log_c_std**-2, self.log_beta_std**-2]
+        if self.f_inf_std > 0:
+            tail.append(self.f_inf_std**-2)
+        prior_prec = torch.cat([self.tau**-2, torch.tensor(tail, dtype=DTYPE)])
         A = J.T @ J / self.noise**2 + torch.diag(prior_prec)
         cov = torch.cholesky_inverse(torch.linalg.cholesky(A))
         self.cov = (cov + cov.T) / 2

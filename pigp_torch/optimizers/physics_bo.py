@@ -45,6 +45,16 @@ class PhysicsModelBO(AskTellOptimizer):
             (:math:`\beta = 0`) instead of the UCB: the benchmark scores the best *true* value
             visited, and near the peak the noise (0.04) is as large as the last few per cent of
             the gain, so a model-averaged best guess is worth a measurement.
+        adapt_box: shrink and grow the trust box like TuRBO (Eriksson et al. 2019), counting
+            asks: a *success* when the best posterior mean over the told points rose by more
+            than ``success_tol`` since the previous ask, else a *failure*;
+            ``success_streak`` successes in a row double the half-width (up to ``step_limit``),
+            ``failure_streak`` failures in a row halve it (down to ``min_step_limit``). A box
+            that keeps missing (the model's peak moved, the reading did not follow) thus turns
+            the method into a local search around the best point.
+        min_step_limit, success_streak, failure_streak: the adaptation's floor and streaks.
+        success_tol: improvement of the best posterior mean that counts as a success
+            (default: a quarter of the model's noise).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``log_c_std``, ``log_beta_std``, ``residual_std``, ``noise``).
@@ -64,6 +74,11 @@ class PhysicsModelBO(AskTellOptimizer):
         step_limit: float | None = 0.6,
         n_starts: int = 8,
         exploit_every: int = 0,
+        adapt_box: bool = False,
+        min_step_limit: float = 0.075,
+        success_streak: int = 3,
+        failure_streak: int = 4,
+        success_tol: float | None = None,
         seed: int = 0,
         maximize: bool = True,
         **model_options,
@@ -81,12 +96,49 @@ class PhysicsModelBO(AskTellOptimizer):
         if int(exploit_every) < 0:
             raise ValueError(f"exploit_every must be >= 0, got {exploit_every}")
         self.exploit_every = int(exploit_every)
+        self.adapt_box = bool(adapt_box)
+        if self.adapt_box:
+            if self.step_limit is None:
+                raise ValueError("adapt_box needs a step_limit (the largest half-width)")
+            if not 0 < float(min_step_limit) <= self.step_limit:
+                raise ValueError(
+                    f"min_step_limit must lie in (0, step_limit={self.step_limit}], "
+                    f"got {min_step_limit}"
+                )
+            if int(success_streak) < 1 or int(failure_streak) < 1:
+                raise ValueError("success_streak and failure_streak must be >= 1")
+        self.min_step_limit = float(min_step_limit)
+        self.success_streak, self.failure_streak = int(success_streak), int(failure_streak)
+        tol = 0.25 * self.model.noise if success_tol is None else float(success_tol)
+        if not (tol >= 0 and math.isfinite(tol)):
+            raise ValueError(f"success_tol must be >= 0 and finite, got {success_tol}")
+        self.success_tol = tol
+        self.box_half_width = self.step_limit  # current half-width (adapted if adapt_box)
+        self._streak = 0  # > 0: successes in a row, < 0: failures in a row
+        self._best_mean: float | None = None
         self.seed = int(seed)
         self.last_info: dict = {}
 
     def trust_box(self, center: torch.Tensor) -> torch.Tensor:
-        """The ``2 x d`` search box around ``center`` (same rule as :class:`BayesOpt`)."""
-        return trust_box(self.bounds, center, self.step_limit)
+        """The ``2 x d`` search box of the current half-width around ``center`` (same rule as
+        :class:`BayesOpt`)."""
+        return trust_box(self.bounds, center, self.box_half_width)
+
+    def _adapt(self, best_mean: float) -> None:
+        """One TuRBO-like update of :attr:`box_half_width` from the best posterior mean."""
+        if self._best_mean is not None:
+            success = best_mean > self._best_mean + self.success_tol
+            if success:
+                self._streak = max(self._streak, 0) + 1
+            else:
+                self._streak = min(self._streak, 0) - 1
+            if self._streak >= self.success_streak:
+                self.box_half_width = min(2 * self.box_half_width, self.step_limit)
+                self._streak = 0
+            elif -self._streak >= self.failure_streak:
+                self.box_half_width = max(self.box_half_width / 2, self.min_step_limit)
+                self._streak = 0
+        self._best_mean = best_mean if self._best_mean is None else max(best_mean, self._best_mean)
 
     def acquisition(self, X: torch.Tensor, beta: float | None = None) -> torch.Tensor:
         r""":math:`\mu + \sqrt\beta\,\sigma` at ``n x d`` settings (after a fit)."""
@@ -105,6 +157,8 @@ class PhysicsModelBO(AskTellOptimizer):
         with torch.no_grad():
             mean, _ = self.model.predict(X)
         center = X[int(mean.argmax())]
+        if self.adapt_box:
+            self._adapt(float(mean.max()))
         box = self.trust_box(center)
         fitted = self.model.center()
         t1 = time.perf_counter()
@@ -127,6 +181,7 @@ class PhysicsModelBO(AskTellOptimizer):
             "exploit": exploit,
             "trust_lower": box[0].clone(),
             "trust_upper": box[1].clone(),
+            "box_half_width": self.box_half_width,
             "fit_time_s": t1 - t0,
             "acq_time_s": time.perf_counter() - t1,
         }

@@ -84,6 +84,32 @@ def test_fit_recovers_the_machine_parameters_from_noise_free_data(prior):
     assert (sd < 1e-3).all()
 
 
+def test_fitted_background_jacobian_and_recovery(prior):
+    """With ``f_inf_std > 0`` theta carries delta (f_inf + delta): the analytic Jacobian still
+    equals autograd, and noise-free data of a machine whose background is 0.03 higher give back
+    delta, the centre and c."""
+    model = InverseSqrtPeakModel(prior, prior.bounds, noise=1e-4, residual_std=0.0, f_inf_std=0.05)
+    assert model.n_params == D + 3
+    assert model.prior_theta().shape == (D + 3,)
+    mu = torch.tensor([0.005, -0.003, 0.001, 0.002, -0.006], dtype=DT)
+    theta = torch.cat([true_theta(model, mu, 0.7, 1.1), torch.tensor([0.03], dtype=DT)])
+    model.theta = theta
+    assert float(model.background()) == pytest.approx(F_INF + 0.03, abs=1e-15)
+    X = (
+        mu
+        + (torch.rand(40, D, generator=torch.Generator().manual_seed(4), dtype=DT) * 2 - 1) * 0.01
+    )
+    J_ref = torch.autograd.functional.jacobian(lambda t: model.form(X, t), theta)
+    torch.testing.assert_close(model.jacobian(X), J_ref, rtol=1e-10, atol=1e-12)
+    Y = model.form(X, theta)
+    model.theta = None
+    model.fit(X, Y)
+    assert float(model.theta[D + 2]) == pytest.approx(0.03, abs=1e-3)
+    torch.testing.assert_close(model.center(), mu, rtol=0, atol=1e-4)
+    assert math.exp(float(model.theta[D])) == pytest.approx(0.7, rel=3e-2)
+    assert model.peak() == pytest.approx(F_INF + 0.03 + 0.7**-0.5, rel=1e-2)
+
+
 def test_uncertainty_shrinks_with_data_and_residual_gp_interpolates(prior):
     model = InverseSqrtPeakModel(prior, prior.bounds, noise=0.02, residual_std=0.05)
     theta_true = true_theta(model, torch.full((D,), 0.003, dtype=DT), 0.8, 1.0)
@@ -108,6 +134,8 @@ def test_validation_errors(prior):
         InverseSqrtPeakModel(prior, prior.bounds, center_std=0.0)
     with pytest.raises(ValueError, match="residual_std must be >= 0"):
         InverseSqrtPeakModel(prior, prior.bounds, residual_std=-1.0)
+    with pytest.raises(ValueError, match="f_inf_std must be >= 0"):
+        InverseSqrtPeakModel(prior, prior.bounds, f_inf_std=float("nan"))
     with pytest.raises(ValueError, match="prior has 5 knobs, bounds have 3"):
         InverseSqrtPeakModel(prior, torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=DT))
     with pytest.raises(RuntimeError, match="fit"):
@@ -139,3 +167,33 @@ def test_physics_bo_reaches_the_peak_of_another_machine(prior):
         assert ((x - bo.last_info["center"]).abs() <= 0.6 * half * (1 + 1e-12)).all()
         best = max(best, f(x))
     assert (best - f0) / (fstar - f0) >= 0.95
+
+
+def test_adaptive_trust_box_halves_after_failures_and_doubles_after_successes(prior):
+    """TuRBO-like rule on a scripted sequence of best posterior means (tol = noise/4 = 0.005):
+    four non-improvements halve the half-width (floor min_step_limit), three improvements in a
+    row double it (cap step_limit)."""
+    bo = PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=0.6, min_step_limit=0.1)
+    assert bo.success_tol == pytest.approx(0.25 * prior.noise)
+    widths = []
+    means = [1.0] + [1.004] * 4 + [1.0] * 8 + [1.1, 1.2, 1.3] + [1.3] * 2 + [1.4, 1.5, 1.6]
+    for m in means:
+        bo._adapt(m)
+        widths.append(bo.box_half_width)
+    # 1.004 is below the tolerance: failures 1-4 -> 0.3; 4 more -> 0.15; 4 more -> 0.1 (floor)
+    assert widths[4] == pytest.approx(0.3) and widths[3] == pytest.approx(0.6)
+    assert widths[8] == pytest.approx(0.15) and widths[12] == pytest.approx(0.1)
+    assert widths[15] == pytest.approx(0.2)  # three successes in a row double it
+    assert widths[17] == pytest.approx(0.2)  # two failures: no change yet
+    assert widths[20] == pytest.approx(0.4)
+    box = bo.trust_box(torch.zeros(D, dtype=DT))
+    torch.testing.assert_close(box[1], torch.full((D,), 0.4 * 0.015, dtype=DT))
+
+
+def test_adaptive_trust_box_validation(prior):
+    with pytest.raises(ValueError, match="adapt_box needs a step_limit"):
+        PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=None)
+    with pytest.raises(ValueError, match="min_step_limit must lie in"):
+        PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=0.3, min_step_limit=0.5)
+    with pytest.raises(ValueError, match="failure_streak must be >= 1"):
+        PhysicsModelBO(prior.bounds, prior, adapt_box=True, failure_streak=0)
