@@ -2,9 +2,28 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 DTYPE = torch.float64
+
+
+@contextlib.contextmanager
+def default_dtype(dtype: torch.dtype = DTYPE):
+    """Set torch's default dtype inside the block and restore the caller's afterwards.
+
+    Libraries read the default dtype in places we do not control (e.g. constants inside BoTorch's
+    and GPyTorch's numerics), and some change it at import: ``import xopt`` switches the whole
+    process to float64. A benchmark run wraps itself in this so that its numbers do not depend
+    on what else the process imported, or ran before it.
+    """
+    saved = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(saved)
 
 
 def as_knob_tensor(x, dim: int, *, name: str = "x") -> tuple[torch.Tensor, bool]:

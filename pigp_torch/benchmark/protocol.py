@@ -29,7 +29,7 @@ from concurrent.futures import ProcessPoolExecutor
 import pandas as pd
 import torch
 
-from pigp_torch._utils import DTYPE
+from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
@@ -122,10 +122,20 @@ def run_one(
     """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
 
     ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
+    The run executes with torch's default dtype set to float64 (the caller's is restored): BoTorch
+    and GPyTorch read it internally and ``import xopt`` changes it process-wide, so without this
+    the same run gave different proposals in a process that had imported Xopt.
 
     Raises:
         ValueError: ``prior`` is for other knobs than ``knobs`` (names must match in order).
     """
+    with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
+        return _run_one(
+            spec, machine_seed, prior, budget, noise, archive_size, optimum_starts, knobs
+        )
+
+
+def _run_one(spec, machine_seed, prior, budget, noise, archive_size, optimum_starts, knobs):
     sim = Spear3Coupling(int(machine_seed), knobs=knobs)
     if list(prior.knob_names) != list(sim.knob_names):
         raise ValueError(

@@ -67,11 +67,6 @@ def slow_square(job):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=False,
-    reason="known issue (issue 6): on the CI machine one BO proposal (pigp, seed 2, last step) "
-    "differs between the Dask worker and the local process; equal on the dev machine",
-)
 def test_dask_cluster_gives_the_local_table(loopback_cluster, tiny_prior):
     """methods x seeds on a 2-worker loopback cluster equals the serial run, row for row
     (wall-time columns aside), in method-then-seed order."""

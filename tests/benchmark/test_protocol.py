@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from pigp_torch.benchmark import METHODS, machine_archive, machine_optimum, run_benchmark, run_seed
-from pigp_torch.benchmark.methods import resolve_methods
+from pigp_torch.benchmark.methods import MethodSpec, resolve_methods
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.simulation import Spear3Coupling
 from tests.benchmark.conftest import BUDGETS, MODEL_SEED, OPTIMUM_STARTS, SEEDS, tiny_methods
@@ -120,3 +120,31 @@ def test_process_pool_gives_the_same_numbers(tiny_table, tiny_prior):
         n_workers=2,
     )
     pd.testing.assert_frame_equal(tiny_table.drop(columns=TIMING), pooled.drop(columns=TIMING))
+
+
+def test_a_run_uses_float64_defaults_whatever_the_caller_set(tiny_prior):
+    """``import xopt`` switches torch's default dtype to float64 process-wide; a run pins it to
+    float64 itself (so a Dask worker and a process that imported Xopt propose the same points)
+    and gives the caller's default back afterwards."""
+    from pigp_torch.benchmark import run_one
+
+    seen = []
+    pigp = METHODS["pigp"].with_options(num_restarts=2, raw_samples=32)
+
+    def build(ctx, **options):
+        seen.append(torch.get_default_dtype())
+        return pigp.build(ctx)
+
+    spec = MethodSpec("pigp", build, "gp")  # same name, so the same run seed as ``pigp``
+    tables = []
+    saved = torch.get_default_dtype()
+    try:
+        for dtype in (torch.float32, torch.float64):
+            torch.set_default_dtype(dtype)
+            tables.append(run_one(spec, 1, tiny_prior, budget=5, optimum_starts=OPTIMUM_STARTS))
+            assert torch.get_default_dtype() == dtype
+    finally:
+        torch.set_default_dtype(saved)
+    assert seen == [torch.float64, torch.float64]
+    timing = ["ask_time_s", "eval_time_s"]
+    pd.testing.assert_frame_equal(tables[0].drop(columns=timing), tables[1].drop(columns=timing))
