@@ -38,6 +38,8 @@ def _add_machine_args(p: argparse.ArgumentParser, seed_help: str) -> None:
 def cmd_generate_data(args) -> int:
     from pigp_torch.simulation.sampling import generate_dataset
 
+    if args.n < 1:  # before the machine is built and its optimum searched (seconds)
+        raise ValueError(f"n must be positive, got {args.n}")
     sim = _simulator(args)
     print(f"machine: {sim!r}", file=sys.stderr)
     ds = generate_dataset(
