@@ -73,6 +73,8 @@ class InverseSqrtPeakModel:
         f_inf_std: if ``> 0``, the background is fitted too, as :math:`f_\infty + \delta` with
             :math:`\delta \sim \mathcal N(0, s_f^2)` (objective units; the prior's
             :math:`f_\infty` belongs to the model ring); ``0`` keeps :math:`f_\infty` fixed.
+            Measured on the 12-seed spear3-13 benchmark with ``s_f = 0.05``: gain after 100
+            evaluations median 0.78 against 0.89 with it fixed, so fixed is the default.
         max_iter: L-BFGS-B iterations per start.
 
     Raises:

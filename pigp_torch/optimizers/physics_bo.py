@@ -51,7 +51,9 @@ class PhysicsModelBO(AskTellOptimizer):
             ``success_streak`` successes in a row double the half-width (up to ``step_limit``),
             ``failure_streak`` failures in a row halve it (down to ``min_step_limit``). A box
             that keeps missing (the model's peak moved, the reading did not follow) thus turns
-            the method into a local search around the best point.
+            the method into a local search around the best point. Measured on the 12-seed
+            spear3-13 benchmark (with ``f_inf_std=0.05``): gain after 100 evaluations median
+            0.81 against 0.89 without; off by default.
         min_step_limit, success_streak, failure_streak: the adaptation's floor and streaks.
         success_tol: improvement of the best posterior mean that counts as a success
             (default: a quarter of the model's noise).
