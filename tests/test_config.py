@@ -20,6 +20,7 @@ from pigp_torch.config import (
     validate_config,
 )
 from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
+from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.runlog import RunLog, read_log
@@ -118,9 +119,10 @@ def test_yaml_and_json_files_load_with_paths_relative_to_the_file(tmp_path):
             r"unknown option\(s\) \['size'",
         ),
         (sim(method={"name": "pigp"}), r"prior: method pigp needs a prior file"),
+        (sim(method={"name": "pigp-fast"}), r"prior: method pigp-fast needs a prior file"),
         (
             sim(method={"name": "simplex"}),
-            r"method.name: Input should be 'pigp', 'pigp-physics', 'ml2'",
+            r"method.name: Input should be 'pigp', 'pigp-fast', 'pigp-physics', 'ml2'",
         ),
         (sim(machine={"kind": "tango"}), r"machine: Input tag 'tango'"),
         (sim(budget=0), r"budget: Input should be greater than or equal to 1"),
@@ -224,6 +226,17 @@ def test_each_method_is_built_with_its_options(tmp_path):
     assert isinstance(phys.optimizer, PhysicsModelBO) and phys.optimizer.step_limit == 0.6
     assert phys.optimizer.model.residual_std == 0.0
     assert {"center_std", "exploit_every"} <= method_options("pigp-physics")
+    fast = build_run(
+        validate_config(sim(method={"name": "pigp-fast", "options": {"beta": 1.0}}, **base))
+    )
+    opt = fast.optimizer
+    assert isinstance(opt, FastBayesOpt)
+    assert (opt.step_limit, opt.beta, opt.num_restarts) == (0.3, 1.0, 10)
+    opt.tell(torch.zeros(2, dtype=D), 0.5)
+    x = opt.ask()  # inside the configured box and the 0.3 trust box around the start
+    assert bool((x.abs() <= 0.3 * 0.01 + 1e-15).all())
+    assert {"mean", "num_restarts", "trust_center"} <= method_options("pigp-fast")
+    assert "precision" not in method_options("pigp-fast")
 
 
 def test_sim_bounds_outside_the_simulator_range_are_refused():
