@@ -461,13 +461,11 @@ def build_optimizer(config: RunConfig):
                 bounds, factory, maximize=maximize, seed=seed, **{**BO_DEFAULTS, **opts}
             )
         if name == "pigp-fast":
-            from pigp_torch.benchmark.methods import BO_DEFAULTS
+            from pigp_torch.benchmark.methods import fast_bo_options
             from pigp_torch.optimizers.fast_bo import FastBayesOpt
 
-            keys = ("acquisition", "beta", "step_limit", "trust_center")
-            opts = {**{k: BO_DEFAULTS[k] for k in keys}, **opts}
             return FastBayesOpt.from_prior(
-                bounds, config.get_prior(), maximize=maximize, seed=seed, **opts
+                bounds, config.get_prior(), maximize=maximize, seed=seed, **fast_bo_options(opts)
             )
         if name == "pigp-physics":
             from pigp_torch.optimizers.physics_bo import PhysicsModelBO

@@ -134,6 +134,13 @@ def build_pigp(ctx: RunContext, *, kernel: str = "rbf", mean="f_inf", **bo_optio
     return _bayesopt(ctx, factory, bo_options)
 
 
+def fast_bo_options(options: Mapping[str, Any]) -> dict:
+    """:class:`FastBayesOpt` options: ``options`` over the :data:`BO_DEFAULTS` it shares with
+    :class:`BayesOpt` (acquisition, beta, step_limit, trust_center); its search keeps its own."""
+    keys = ("acquisition", "beta", "step_limit", "trust_center")
+    return {**{k: BO_DEFAULTS[k] for k in keys}, **options}
+
+
 def build_pigp_fast(ctx: RunContext, *, mean="f_inf", **options) -> FastBayesOpt:
     r"""The ``"pigp"`` method on :class:`~pigp_torch.optimizers.fast_bo.FastBayesOpt`: the same
     fixed-kernel GP posterior (incremental Cholesky) and acquisition, :data:`BO_DEFAULTS` for
@@ -141,9 +148,9 @@ def build_pigp_fast(ctx: RunContext, *, mean="f_inf", **options) -> FastBayesOpt
     acquisition search (12-18x faster per step at 13 knobs): :class:`FastBayesOpt`'s defaults, 10
     Newton restarts from the best of 256 random points plus the trust-box centre and the last two
     proposals."""
-    keys = ("acquisition", "beta", "step_limit", "trust_center")
-    opts = {**{k: BO_DEFAULTS[k] for k in keys}, **options}
-    return FastBayesOpt.from_prior(ctx.bounds, ctx.prior, mean=mean, seed=ctx.seed, **opts)
+    return FastBayesOpt.from_prior(
+        ctx.bounds, ctx.prior, mean=mean, seed=ctx.seed, **fast_bo_options(options)
+    )
 
 
 def build_pigp_physics_mean(

@@ -130,34 +130,28 @@ def run_one(
         ValueError: ``prior`` is for other knobs than ``knobs`` (names must match in order).
     """
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
-        return _run_one(
-            spec, machine_seed, prior, budget, noise, archive_size, optimum_starts, knobs
+        sim = Spear3Coupling(int(machine_seed), knobs=knobs)
+        if list(prior.knob_names) != list(sim.knob_names):
+            raise ValueError(
+                f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
+                f"{sim.dim} knobs {sim.knob_names[:3]}... (knobs={knobs!r}): compute the prior "
+                "from a model ring with the same knobs"
+            )
+        machine = SimulatedMachine(sim, noise=noise, seed=int(machine_seed))
+        ctx = RunContext(
+            machine=machine,
+            prior=prior,
+            seed=run_seed(spec.name, machine_seed),
+            noise=float(noise),
+            archive_size=int(archive_size),
         )
-
-
-def _run_one(spec, machine_seed, prior, budget, noise, archive_size, optimum_starts, knobs):
-    sim = Spear3Coupling(int(machine_seed), knobs=knobs)
-    if list(prior.knob_names) != list(sim.knob_names):
-        raise ValueError(
-            f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
-            f"{sim.dim} knobs {sim.knob_names[:3]}... (knobs={knobs!r}): compute the prior "
-            "from a model ring with the same knobs"
-        )
-    machine = SimulatedMachine(sim, noise=noise, seed=int(machine_seed))
-    ctx = RunContext(
-        machine=machine,
-        prior=prior,
-        seed=run_seed(spec.name, machine_seed),
-        noise=float(noise),
-        archive_size=int(archive_size),
-    )
-    optimizer = spec.build(ctx)
-    x0 = torch.zeros(sim.dim, dtype=DTYPE)
-    table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
-    table.insert(1, "machine_seed", int(machine_seed))
-    if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
-        return score_run(table, sim, float("nan"))
-    return score_run(table, sim, machine_optimum(machine_seed, optimum_starts, knobs=knobs))
+        optimizer = spec.build(ctx)
+        x0 = torch.zeros(sim.dim, dtype=DTYPE)
+        table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
+        table.insert(1, "machine_seed", int(machine_seed))
+        if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
+            return score_run(table, sim, float("nan"))
+        return score_run(table, sim, machine_optimum(machine_seed, optimum_starts, knobs=knobs))
 
 
 def _advance(bar, label: str) -> None:
