@@ -180,6 +180,10 @@ def cmd_build_prior(args) -> int:
         knob_names=meta.get("knob_names") or None,
         provenance=provenance,
     )
+    if args.center_ensemble < 0:
+        raise ValueError(f"--center-ensemble must be >= 0, got {args.center_ensemble}")
+    if args.center_ensemble:
+        prior = _with_center_ensemble(prior, args.center_ensemble, data_meta)
     path = prior.save(args.output)
     lengths, _ = prior.length_scales(normalized=True)
     print(f"optimum of the surrogate: {prior.f_x0:.4f} mA/min (f_inf {prior.f_inf:.4f})")
@@ -188,6 +192,26 @@ def cmd_build_prior(args) -> int:
           + " ".join(f"{v:.3g}" for v in lengths.tolist()))  # fmt: skip
     print(f"saved prior to {path}")
     return 0
+
+
+def _with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None):
+    """``prior`` with ``center_cov`` from ``size`` simulated rings of the data's optics; neither
+    the model ring nor the machine under test may be one of them."""
+    import dataclasses
+
+    from pigp_torch.simulation.ensemble import center_covariance, ensemble_seeds, machine_centers
+
+    seeds = ensemble_seeds(size)
+    for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
+        if seed in seeds:
+            raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
+                             f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
+    print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})", flush=True)
+    used, X = machine_centers(
+        seeds, knobs=prior.knob_names, optics=data_meta.get("optics", "achromat"), progress=True
+    )
+    provenance = {**prior.provenance, "center_ensemble_seeds": [used[0], used[-1], len(used)]}
+    return dataclasses.replace(prior, center_cov=center_covariance(X), provenance=provenance)
 
 
 # ----------------------------------------------------------------------------- compare
@@ -233,6 +257,7 @@ def cmd_compare(args) -> int:
         progress=True,
         knobs=args.knobs,
         scheduler=args.scheduler,
+        center_ensemble=args.center_ensemble,
     )
     title = f"spear3-{len(knob_names_for(args.knobs))}, model seed {args.model_seed}"
     _write_comparison(df, args.out, title)
@@ -244,11 +269,22 @@ def cmd_demo(args) -> int:
     from pigp_torch.benchmark import METHODS, run_one
     from pigp_torch.prior import prior_from_model
     from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.ensemble import ENSEMBLE_SEED0
     from pigp_torch.simulation.sampling import generate_dataset
     from pigp_torch.surrogate import train_ensemble
 
     if args.model_seed == args.machine_seed:
         raise ValueError("the model ring and the machine must have different error seeds")
+    if args.center_ensemble < 0:
+        raise ValueError(f"--center-ensemble must be >= 0, got {args.center_ensemble}")
+    if args.center_ensemble and {args.model_seed, args.machine_seed} & set(
+        range(ENSEMBLE_SEED0, ENSEMBLE_SEED0 + args.center_ensemble)
+    ):
+        raise ValueError(
+            f"--center-ensemble {args.center_ensemble} uses error seeds {ENSEMBLE_SEED0}..."
+            f"{ENSEMBLE_SEED0 + args.center_ensemble - 1}: choose model and machine seeds "
+            "outside them"
+        )
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; known: {sorted(METHODS)}")
@@ -274,6 +310,9 @@ def cmd_demo(args) -> int:
     )
     print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
           f"{prior.f_x0:.3f} mA/min")  # fmt: skip
+    if args.center_ensemble and any(METHODS[m].uses_center_ensemble for m in args.methods):
+        meta = {"error_seed": args.model_seed, "optics": model_ring.optics}
+        prior = _with_center_ensemble(prior, args.center_ensemble, meta, args.machine_seed)
     print(f"[4/4] {', '.join(args.methods)} on machine error seed {args.machine_seed}, "
           f"{args.budget} evaluations each", flush=True)  # fmt: skip
     import pandas as pd
@@ -388,6 +427,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--starts", type=int, default=16, help="multi-start count (default 16)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts")
+    p.add_argument(
+        "--center-ensemble",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also store the covariance of the optimum over N simulated rings with other error "
+        "seeds (1001...; same knobs and optics as the surrogate's data; ~2-3 s a ring); "
+        "pigp-physics uses it as its prior on the machine's optimum (default 0: none)",
+    )
     p.set_defaults(func=cmd_build_prior)
 
     p = sub.add_parser(
@@ -427,6 +475,14 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["paper13", "powered14", "all72"],
         help="skew windings used as knobs by the machines and the model ring (default paper13)",
     )
+    p.add_argument(
+        "--center-ensemble",
+        type=int,
+        default=40,
+        metavar="N",
+        help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
+        "where the machine's optimum lies (~2-3 s a ring; 0: box prior; default 40)",
+    )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
     p.set_defaults(func=cmd_compare)
 
@@ -452,6 +508,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--target",
         default=_train_default("target"),
         help="surrogate target (default inv_sq_excess; log_excess is safer with little data)",
+    )
+    p.add_argument(
+        "--center-ensemble",
+        type=int,
+        default=20,
+        metavar="N",
+        help="simulated rings whose optima give pigp-physics its prior on where the machine's "
+        "optimum lies (~2-3 s a ring; 0: none; default 20)",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/demo"), help="output folder")
     p.set_defaults(func=cmd_demo)

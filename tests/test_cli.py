@@ -72,6 +72,7 @@ def test_demo_small(tmp_path):
     """`pigp demo` end to end at toy size: the three methods run on the machine, prior saved."""
     out = tmp_path / "demo"
     argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
+    argv += ["--center-ensemble", "0"]  # the ensemble (~50 s) is covered by a slow test
     assert main([*argv, "-o", str(out)]) == 0
     import pandas as pd
 
@@ -92,3 +93,23 @@ def test_demo_refuses_same_seed(capsys):
     """The model ring must differ from the machine (the prior must not know the machine)."""
     assert main(["demo", "--model-seed", "3", "--machine-seed", "3"]) == 2
     assert "different error seeds" in capsys.readouterr().err
+
+
+def test_demo_refuses_a_machine_among_the_ensemble_rings(capsys):
+    """The rings that give the centre prior must not include the machine under test."""
+    assert main(["demo", "--machine-seed", "1002", "--center-ensemble", "3"]) == 2
+    assert "choose model and machine seeds outside them" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_with_center_ensemble(tmp_path):
+    """`pigp demo --center-ensemble 14`: the saved prior carries the 13 x 13 covariance of the
+    optima of rings 1001-1014, and pigp-physics ran with it (~40 s)."""
+    out = tmp_path / "demo"
+    argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
+    argv += ["--methods", "pigp-physics", "--center-ensemble", "14", "-o", str(out)]
+    assert main(argv) == 0
+    p = PhysicsPrior.load(out / "prior.json")
+    assert p.center_cov.shape == (13, 13)
+    assert p.provenance["center_ensemble_seeds"] == [1001, 1014, 14]
+    assert torch.linalg.eigvalsh(p.center_cov).min() > 0

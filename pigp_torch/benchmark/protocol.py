@@ -23,6 +23,7 @@ serial loop.
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 
@@ -35,10 +36,13 @@ from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.prior import PhysicsPrior, prior_from_model
 from pigp_torch.simulation import Spear3Coupling
+from pigp_torch.simulation.ensemble import center_covariance, ensemble_seeds, machine_centers
 from pigp_torch.simulation.lattice import knob_names_for
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
+#: Model rings in the error ensemble that gives the prior's ``center_cov`` (~2 min to compute).
+ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
 
@@ -73,11 +77,27 @@ def model_prior(
     n_starts: int = 16,
     seed: int = 0,
     knobs="paper13",
+    center_ensemble: int = 0,
+    progress: bool = False,
 ) -> PhysicsPrior:
     """The physics prior from the model ring ``Spear3Coupling(model_seed, knobs=knobs)``
-    (~3 s at 13 knobs)."""
+    (~3 s at 13 knobs).
+
+    With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
+    optimum over ``n`` more model rings with error seeds
+    :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
+    (:func:`~pigp_torch.simulation.ensemble.machine_centers`, ~2-3 s a ring; ``progress``
+    prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
+    """
     sim = Spear3Coupling(int(model_seed), knobs=knobs)
-    return prior_from_model(
+    provenance = {"model": f"Spear3Coupling(error_seed={int(model_seed)})"}
+    center_cov = None
+    if int(center_ensemble) > 0:
+        seeds = ensemble_seeds(int(center_ensemble))
+        used, X = machine_centers(seeds, knobs=knobs, progress=progress)
+        center_cov = center_covariance(X)
+        provenance["center_ensemble_seeds"] = [used[0], used[-1], len(used)]
+    prior = prior_from_model(
         sim.loss_rate,
         sim.bounds,
         f_inf=sim.loss_background,
@@ -85,8 +105,9 @@ def model_prior(
         n_starts=n_starts,
         seed=seed,
         knob_names=sim.knob_names,
-        provenance={"model": f"Spear3Coupling(error_seed={int(model_seed)})"},
+        provenance=provenance,
     )
+    return prior if center_cov is None else dataclasses.replace(prior, center_cov=center_cov)
 
 
 def score_run(table: pd.DataFrame, sim: Spear3Coupling, f_star: float) -> pd.DataFrame:
@@ -179,6 +200,7 @@ def run_benchmark(
     optimum_starts: int = 8,
     knobs="paper13",
     scheduler: str | None = None,
+    center_ensemble: int = ENSEMBLE_SIZE,
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
@@ -197,6 +219,9 @@ def run_benchmark(
             ``scheduler="local"`` the number of Dask worker processes.
         prior: use this prior instead of computing it from ``model_seed`` (it must come from a
             model, not from a machine under test, with the same ``knobs``).
+        center_ensemble: when the prior is computed here, the number of further model rings
+            whose optima give its ``center_cov`` (:func:`model_prior`; 0: none, the
+            physics-form method then uses its box prior on the centre).
         optimum_starts: starts of the search for each machine's :math:`f^*`; ``0``: no search,
             ``f_star`` and ``gain_fraction`` are NaN (score by ``best_f_true``; for knob sets
             where the search is too slow or unreliable, e.g. 72 knobs).
@@ -214,8 +239,9 @@ def run_benchmark(
         evaluation number = ``step + 1``.
 
     Raises:
-        ValueError: ``model_seed`` among ``machine_seeds``, duplicate seeds, unknown methods or
-            budget classes, bad budgets/noise/worker counts, a prior for other knobs.
+        ValueError: ``model_seed`` or an ensemble seed among ``machine_seeds``, duplicate
+            seeds, unknown methods or budget classes, bad budgets/noise/worker counts, a prior
+            for other knobs.
         ConnectionError: the Dask scheduler cannot be reached (or has no workers) in time.
     """
     specs = resolve_methods(methods)
@@ -246,8 +272,24 @@ def run_benchmark(
         from pigp_torch.benchmark.distributed import check_scheduler
 
         check_scheduler(scheduler)
+    if int(center_ensemble) < 0:
+        raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
+    if not any(spec.uses_center_ensemble for spec in specs):
+        center_ensemble = 0  # no method reads it: skip the ~2 min of ensemble optima
     if prior is None:
-        prior = model_prior(model_seed, noise=noise, knobs=knobs)
+        shared = set(ensemble_seeds(center_ensemble)) & set(seeds) if center_ensemble else ()
+        if shared:
+            raise ValueError(
+                f"machine seeds {sorted(shared)} are also ensemble seeds of the prior: the "
+                "model must not know the machines' errors"
+            )
+        if progress and center_ensemble:
+            print(f"prior: model ring {model_seed} + optima of {center_ensemble} ensemble rings",
+                  flush=True)  # fmt: skip
+        prior = model_prior(
+            model_seed, noise=noise, knobs=knobs, center_ensemble=center_ensemble,
+            progress=progress,
+        )  # fmt: skip
     names = knob_names_for(knobs)
     if list(prior.knob_names) != names:
         raise ValueError(

@@ -58,8 +58,16 @@ class PhysicsModelBO(AskTellOptimizer):
         success_tol: improvement of the best posterior mean that counts as a success
             (default: a quarter of the model's noise).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
+        center_prior: prior on the fitted centre (where the machine's optimum lies):
+            ``"ensemble"``: from the error ensemble of the model rings,
+            :attr:`prior.center_cov <pigp_torch.prior.PhysicsPrior>`; ``"box"``: isotropic,
+            ``center_std`` half-ranges around the box centre; ``"auto"`` (default): the
+            ensemble when the prior has one. Measured on the 12-seed spear3-13 benchmark, the
+            ensemble prior reaches 95 % of the gain on 8 machines instead of 5 (module
+            docstring of :mod:`pigp_torch.models.inverse_sqrt`).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
-            (``center_std``, ``log_c_std``, ``log_beta_std``, ``residual_std``, ``noise``).
+            (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
+            ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``noise``).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
     ``fitted_peak``, ``acq_value``, ``fit_time_s``, ``acq_time_s``.
@@ -82,6 +90,7 @@ class PhysicsModelBO(AskTellOptimizer):
         failure_streak: int = 4,
         success_tol: float | None = None,
         seed: int = 0,
+        center_prior: str = "auto",
         maximize: bool = True,
         **model_options,
     ) -> None:
@@ -91,6 +100,18 @@ class PhysicsModelBO(AskTellOptimizer):
         check_ucb_options(beta, step_limit)
         if int(n_starts) < 0:
             raise ValueError(f"n_starts must be >= 0, got {n_starts}")
+        if center_prior not in ("auto", "ensemble", "box"):
+            raise ValueError(f"center_prior must be auto, ensemble or box, got {center_prior!r}")
+        if center_prior == "ensemble" and prior.center_cov is None:
+            raise ValueError(
+                "center_prior='ensemble' needs a prior with center_cov (pigp build-prior "
+                "--center-ensemble N, or benchmark.model_prior(center_ensemble=N))"
+            )
+        if center_prior == "box":
+            model_options.pop("center_cov", None)
+        elif prior.center_cov is not None:
+            model_options.setdefault("center_cov", prior.center_cov)
+        self.center_prior = "box" if model_options.get("center_cov") is None else "ensemble"
         self.model = InverseSqrtPeakModel(prior, self.bounds, **model_options)
         self.beta = float(beta)
         self.step_limit = None if step_limit is None else float(step_limit)

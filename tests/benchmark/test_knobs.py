@@ -47,3 +47,37 @@ def test_prior_for_other_knobs_is_refused(prior3):
         run_one(METHODS["pigp"], 1, prior3, budget=2)
     with pytest.raises(ValueError, match="unknown knob set 'all73'"):
         run_benchmark(["pigp"], [1], knobs="all73", progress=False, prior=prior3)
+
+
+def test_model_prior_with_center_ensemble_on_three_knobs():
+    """``center_ensemble=n`` adds the second moment of the optima of the n rings 1001... (here
+    3-knob rings, so 4 rings suffice for a full-rank 3 x 3 matrix), with provenance."""
+    from pigp_torch.simulation.ensemble import machine_centers
+
+    p = model_prior(0, n_starts=2, knobs=THREE, center_ensemble=4)
+    seeds, X = machine_centers([1001, 1002, 1003, 1004], knobs=THREE)
+    assert seeds == [1001, 1002, 1003, 1004]
+    torch.testing.assert_close(p.center_cov, X.T @ X / 4, rtol=1e-12, atol=0)
+    assert p.provenance["center_ensemble_seeds"] == [1001, 1004, 4]
+    assert model_prior(0, n_starts=2, knobs=THREE).center_cov is None
+
+
+def test_run_benchmark_builds_the_ensemble_only_for_methods_that_use_it(monkeypatch):
+    """Machine seeds may not be ensemble seeds (checked before any work), and methods that do
+    not read ``center_cov`` never pay for the ensemble."""
+    import pigp_torch.benchmark.protocol as protocol
+
+    with pytest.raises(ValueError, match=r"machine seeds \[1002\] are also ensemble seeds"):
+        run_benchmark(["pigp-physics"], [1002], progress=False, center_ensemble=3, knobs=THREE)
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the ensemble was computed for a method that does not use it")
+
+    monkeypatch.setattr(protocol, "machine_centers", forbidden)
+    df = run_benchmark(
+        ["nelder-mead"], [1002], budgets={"direct": 3}, progress=False, knobs=THREE,
+        optimum_starts=0, center_ensemble=3,
+    )  # fmt: skip
+    assert len(df) == 3
+    assert METHODS["pigp-physics"].uses_center_ensemble
+    assert not METHODS["pigp-physics-box"].uses_center_ensemble

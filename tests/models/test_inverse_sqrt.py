@@ -197,3 +197,90 @@ def test_adaptive_trust_box_validation(prior):
         PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=0.3, min_step_limit=0.5)
     with pytest.raises(ValueError, match="failure_streak must be >= 1"):
         PhysicsModelBO(prior.bounds, prior, adapt_box=True, failure_streak=0)
+
+
+def _ensemble_cov(v: torch.Tensor, along: float, across: float) -> torch.Tensor:
+    """Covariance ``along² v v' + across² I`` (knob units) of machine centres."""
+    return along**2 * torch.outer(v, v) + across**2 * torch.eye(D, dtype=DT)
+
+
+def test_ensemble_centre_prior_penalty_and_laplace_closed_form(prior):
+    """With ``center_cov`` C the centre prior is N(mu0, k C + (s0 h)² I): the negative log
+    posterior without data is its quadratic form and the Laplace covariance its matrix."""
+    v = torch.tensor([1.0, -1.0, 0.5, 0.0, 2.0], dtype=DT)
+    C = _ensemble_cov(v / v.norm(), 0.01, 0.002)
+    model = InverseSqrtPeakModel(prior, prior.bounds, center_cov=C, center_cov_scale=2.0,
+                                 center_floor_std=0.3)  # fmt: skip
+    Cmu = 2.0 * C + (0.3 * 0.015) ** 2 * torch.eye(D, dtype=DT)
+    theta = model.prior_theta()
+    mu = torch.tensor([0.004, -0.003, 0.001, 0.0, 0.006], dtype=DT)
+    theta[:D] = mu
+    X0, Y0 = torch.zeros(0, D, dtype=DT), torch.zeros(0, dtype=DT)
+    expected = 0.5 * float(mu @ torch.linalg.solve(Cmu, mu))
+    assert float(model._neg_log_post(theta, X0, Y0)) == pytest.approx(expected, rel=1e-12)
+    model.theta = theta
+    model._laplace(X0)
+    torch.testing.assert_close(model.cov[:D, :D], Cmu, rtol=1e-10, atol=0)
+    assert float(model.cov[D, D]) == pytest.approx(model.log_c_std**2, rel=1e-12)
+    with pytest.raises(ValueError, match="center_cov must be 5 x 5"):
+        InverseSqrtPeakModel(prior, prior.bounds, center_cov=torch.eye(3, dtype=DT))
+    with pytest.raises(ValueError, match="center_cov_scale must be positive"):
+        InverseSqrtPeakModel(prior, prior.bounds, center_cov=C, center_cov_scale=0.0)
+
+
+def test_center_prior_option_of_physics_bo(prior):
+    """``auto`` takes the prior's ensemble covariance when it has one, ``box`` ignores it,
+    ``ensemble`` needs it."""
+    import dataclasses
+
+    C = _ensemble_cov(torch.ones(D, dtype=DT) / math.sqrt(D), 0.01, 0.002)
+    with_cov = dataclasses.replace(prior, center_cov=C)
+    assert PhysicsModelBO(prior.bounds, with_cov).center_prior == "ensemble"
+    torch.testing.assert_close(PhysicsModelBO(prior.bounds, with_cov).model.center_cov, C)
+    assert PhysicsModelBO(prior.bounds, with_cov, center_prior="box").model.center_cov is None
+    assert PhysicsModelBO(prior.bounds, prior).center_prior == "box"
+    with pytest.raises(ValueError, match="needs a prior with center_cov"):
+        PhysicsModelBO(prior.bounds, prior, center_prior="ensemble")
+    with pytest.raises(ValueError, match="center_prior must be"):
+        PhysicsModelBO(prior.bounds, prior, center_prior="wide")
+
+
+def _steps_to_95(bo: PhysicsModelBO, f, noise: float, seed: int, budget: int) -> int:
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.zeros(D, dtype=DT)
+    f0, fstar = f(x), F_INF + 0.5**-0.5
+    for k in range(budget):
+        if (f(x) - f0) / (fstar - f0) >= 0.95:
+            return k + 1
+        bo.tell(x, f(x) + noise * float(torch.randn((), generator=gen, dtype=DT)))
+        x = bo.ask()
+    return budget + 1
+
+
+def test_ensemble_centre_prior_finds_machines_of_the_ensemble_sooner(prior):
+    """Machines whose centres follow the ensemble (mostly along one direction, as the SPEAR3
+    optima do): with that covariance as the centre prior, PhysicsModelBO needs fewer steps to
+    95 % of the gain than with the isotropic box prior (measured 45 against 64 in total on
+    these four machines)."""
+    import dataclasses
+
+    h = 0.015
+    v = torch.tensor([1.0, -1.0, 0.5, 0.3, 2.0], dtype=DT)
+    C = _ensemble_cov(v / v.norm(), 0.8 * h, 0.1 * h)
+    with_cov = dataclasses.replace(prior, center_cov=C)
+    form = InverseSqrtPeakModel(prior, prior.bounds)
+    total = {"box": 0, "ensemble": 0}  # steps to 95 % summed over machines (31 = not reached)
+    for s in range(1, 5):
+        g = torch.Generator().manual_seed(100 + s)
+        mu = (torch.linalg.cholesky(C) @ torch.randn(D, generator=g, dtype=DT)).clamp(
+            -0.9 * h, 0.9 * h
+        )
+        theta = true_theta(form, mu, 0.5, 1.0)
+
+        def f(x, theta=theta):
+            return float(form.form(x.unsqueeze(0), theta)[0])
+
+        for name in total:
+            bo = PhysicsModelBO(prior.bounds, with_cov, center_prior=name, seed=s, n_starts=4)
+            total[name] += _steps_to_95(bo, f, prior.noise, s, budget=30)
+    assert total["ensemble"] <= 0.85 * total["box"], total

@@ -53,6 +53,21 @@ def test_save_load_round_trip_is_exact(tmp_path):
         assert getattr(p, name) == getattr(q, name), name
 
 
+def test_center_cov_round_trip_and_absence(tmp_path):
+    """An ensemble ``center_cov`` is saved and loaded bit for bit; a prior without one writes no
+    such key and loads with ``None`` (files from before the field still load)."""
+    g = torch.Generator().manual_seed(1)
+    A = torch.randn(5, 3, generator=g, dtype=torch.float64) * 1e-2
+    C = A.T @ A / 5
+    p = _prior(center_cov=C)
+    p.save(tmp_path / "with.json")
+    q = PhysicsPrior.load(tmp_path / "with.json")
+    assert torch.equal(q.center_cov, p.center_cov) and q.center_cov.dtype == torch.float64
+    _prior().save(tmp_path / "without.json")
+    assert "center_cov" not in json.loads((tmp_path / "without.json").read_text())
+    assert PhysicsPrior.load(tmp_path / "without.json").center_cov is None
+
+
 def test_load_rejects_foreign_json(tmp_path):
     """A JSON file without the PhysicsPrior format tag, or with broken JSON, raises ValueError."""
     path = tmp_path / "x.json"
@@ -142,6 +157,9 @@ def test_gradient_defaults_to_zero():
         ({"bounds": torch.tensor([[0.1, 0.0, 0.0], [0.0, 1.0, 1.0]])}, "lower bound"),
         ({"bounds": torch.zeros(3, 3)}, "bounds must have shape"),
         ({"gradient": torch.zeros(4)}, "gradient must have shape"),
+        ({"center_cov": torch.eye(2)}, "center_cov must have shape"),
+        ({"center_cov": torch.diag(torch.tensor([1.0, 0.0, 1.0]))}, "center_cov must be positive"),
+        ({"center_cov": torch.tensor([[1.0, 0.1, 0], [0, 1, 0], [0, 0, 1]])}, "center_cov must be"),
         ({"provenance": {"bad": object()}}, "JSON"),
         ({"provenance": {"bad": float("nan")}}, "JSON"),
     ],
