@@ -217,13 +217,17 @@ def test_torch_only_path_equals_default(sim):
 
 
 def test_grad_mode_equals_in_place_mode(sim):
-    """With autograd (out-of-place updates) the values equal the in-place fast path (1e-13)."""
+    """With autograd (out-of-place updates) the values equal the in-place fast path (1e-11).
+
+    Round-off only: the two paths order operations differently, and how far that shows depends
+    on the CPU's vector kernels (within 1e-13 where the test was written, 8e-13 on an AMD EPYC).
+    """
     m, x = sim._m["model"], settings(sim, 6, seed=4)
     with torch.no_grad():
         fast = equilibrium(m, x)
     slow = equilibrium(m, x.clone().requires_grad_(True))
-    assert torch.allclose(fast.eps, slow.eps.detach(), rtol=1e-13, atol=0)
-    assert torch.allclose(fast.inv_sigma_xy, slow.inv_sigma_xy.detach(), rtol=1e-13, atol=0)
+    assert torch.allclose(fast.eps, slow.eps.detach(), rtol=1e-11, atol=0)
+    assert torch.allclose(fast.inv_sigma_xy, slow.inv_sigma_xy.detach(), rtol=1e-11, atol=0)
 
 
 def test_unstable_row_keeps_gradients_of_others_finite(sim):
