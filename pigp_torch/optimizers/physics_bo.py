@@ -63,11 +63,11 @@ class PhysicsModelBO(AskTellOptimizer):
             :attr:`prior.center_cov <pigp_torch.prior.PhysicsPrior>`; ``"box"``: isotropic,
             ``center_std`` half-ranges around the box centre; ``"auto"`` (default): the
             ensemble when the prior has one. Measured on the 12-seed spear3-13 benchmark, the
-            ensemble prior reaches 95 % of the gain on 8 machines instead of 5 (module
-            docstring of :mod:`pigp_torch.models.inverse_sqrt`).
+            ensemble prior reaches 95 % of the gain within 100 evaluations on 7 machines
+            instead of 5, median gain after 40 evaluations 0.89 instead of 0.66.
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
-            ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``noise``).
+            ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
     ``fitted_peak``, ``acq_value``, ``fit_time_s``, ``acq_time_s``.
