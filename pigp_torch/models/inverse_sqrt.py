@@ -142,7 +142,8 @@ class InverseSqrtPeakModel:
         self.B = 2.0 * math.exp(self.log_c_model) * prior.precision.to(DTYPE)
         self.B = (self.B + self.B.T) / 2
         self.shape_std = float(shape_std)
-        self._lam, self._V = torch.linalg.eigh(self.B)  # for the fitted shape (shape_std > 0)
+        if self.shape_std > 0:  # eigenbasis of the fitted shape B(s)
+            self._lam, self._V = torch.linalg.eigh(self.B)
         lower, upper = self.bounds
         self.center0 = (upper + lower) / 2
         half = (upper - lower) / 2
@@ -173,7 +174,8 @@ class InverseSqrtPeakModel:
 
     @property
     def n_params(self) -> int:
-        r""":math:`\theta = (\boldsymbol\mu, \log c, \log\beta[, \delta])` has this length."""
+        r""":math:`\theta = (\boldsymbol\mu, \log c, \log\beta[, \delta][, \mathbf s])` has this
+        length (:math:`\delta` with ``f_inf_std > 0``, :math:`\mathbf s` with ``shape_std > 0``)."""
         return self.dim + 2 + int(self.f_inf_std > 0) + self.dim * int(self.shape_std > 0)
 
     @property
@@ -192,7 +194,7 @@ class InverseSqrtPeakModel:
 
     # -- the parametric form -------------------------------------------------------------------
     def prior_theta(self) -> Tensor:
-        r""":math:`\theta_0 = (\boldsymbol\mu_0, \log c_m, 0[, 0])`."""
+        r""":math:`\theta_0 = (\boldsymbol\mu_0, \log c_m, 0[, 0][, \mathbf 0])`."""
         tail = [self.log_c_model, 0.0] + [0.0] * (self.n_params - self.dim - 2)
         return torch.cat([self.center0, torch.tensor(tail, dtype=DTYPE)])
 

@@ -38,6 +38,20 @@ def true_theta(model: InverseSqrtPeakModel, mu, c: float, beta: float) -> torch.
     return torch.cat([torch.as_tensor(mu, dtype=DT), tail])
 
 
+def check_jacobian_and_refit(model, theta, mu, n, seed):
+    """Settings within 0.01 of ``mu``: the analytic Jacobian at ``theta`` equals autograd; then
+    refit ``model`` from scratch to the noise-free form at ``theta``. Returns ``X, Y``."""
+    g = torch.Generator().manual_seed(seed)
+    X = mu + (torch.rand(n, D, generator=g, dtype=DT) * 2 - 1) * 0.01
+    model.theta = theta
+    J_ref = torch.autograd.functional.jacobian(lambda t: model.form(X, t), theta)
+    torch.testing.assert_close(model.jacobian(X), J_ref, rtol=1e-10, atol=1e-12)
+    Y = model.form(X, theta)
+    model.theta = None
+    model.fit(X, Y)
+    return X, Y
+
+
 @pytest.fixture
 def prior():
     return synthetic_prior()
@@ -95,15 +109,7 @@ def test_fitted_background_jacobian_and_recovery(prior):
     theta = torch.cat([true_theta(model, mu, 0.7, 1.1), torch.tensor([0.03], dtype=DT)])
     model.theta = theta
     assert float(model.background()) == pytest.approx(F_INF + 0.03, abs=1e-15)
-    X = (
-        mu
-        + (torch.rand(40, D, generator=torch.Generator().manual_seed(4), dtype=DT) * 2 - 1) * 0.01
-    )
-    J_ref = torch.autograd.functional.jacobian(lambda t: model.form(X, t), theta)
-    torch.testing.assert_close(model.jacobian(X), J_ref, rtol=1e-10, atol=1e-12)
-    Y = model.form(X, theta)
-    model.theta = None
-    model.fit(X, Y)
+    check_jacobian_and_refit(model, theta, mu, 40, seed=4)
     assert float(model.theta[D + 2]) == pytest.approx(0.03, abs=1e-3)
     torch.testing.assert_close(model.center(), mu, rtol=0, atol=1e-4)
     assert math.exp(float(model.theta[D])) == pytest.approx(0.7, rel=3e-2)
@@ -130,15 +136,7 @@ def test_fitted_shape_closed_form_jacobian_and_recovery(prior):
     torch.testing.assert_close(
         model.residual_precision(), torch.exp(-theta[D]) * B_s / 2, rtol=1e-12, atol=0
     )
-    X = (
-        mu
-        + (torch.rand(60, D, generator=torch.Generator().manual_seed(5), dtype=DT) * 2 - 1) * 0.01
-    )
-    J_ref = torch.autograd.functional.jacobian(lambda t: model.form(X, t), theta)
-    torch.testing.assert_close(model.jacobian(X), J_ref, rtol=1e-10, atol=1e-12)
-    Y = model.form(X, theta)
-    model.theta = None
-    model.fit(X, Y)
+    X, Y = check_jacobian_and_refit(model, theta, mu, 60, seed=5)
     # only beta * B(s) is identified (beta and a common shift of s trade off; the prior splits)
     fitted_shape = torch.exp(model.theta[D + 1]) * model.shape()
     torch.testing.assert_close(fitted_shape, B_s, rtol=0, atol=2e-2 * float(lam.max()))
