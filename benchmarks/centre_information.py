@@ -10,7 +10,7 @@ that is a ball around the optimum: with :math:`P = f^* - f_\infty = c^{-1/2}` an
 
 This script runs the benchmark's ``pigp-physics`` on machine seeds exactly as ``pigp compare`` does
 (:func:`~pigp_torch.benchmark.run_one`, same run seed) and, after ``n`` readings, refits the form
-to them and prints, in the metric of the prior's :math:`B`:
+to them and prints, in the metric of the run's :math:`B`:
 
 * ``d_fit``: distance of the fitted centre :math:`\hat{\boldsymbol\mu}` from the machine's optimum
   :math:`\mathbf x^*` (the noise-free optimum from 8 L-BFGS-B starts);
@@ -26,17 +26,16 @@ to them and prints, in the metric of the prior's :math:`B`:
 machine ring itself, the ensemble's centre covariance kept) -- a diagnostic that no real run can
 have: if the oracle does not get closer, a better shape would not help either.
 
-``--shape ensemble`` replaces the model ring's shape by the mean shape of the error ensemble
-(:math:`\bar B = \frac1n\sum_i B_i`, :math:`B_i = 2 c_i \Sigma_i` from each ensemble ring's own
-prior, :func:`~pigp_torch.benchmark.model_prior`, ~3 s a ring), keeping the model ring's
-:math:`c_m`: a shape estimate that costs no readings, unlike fitting the shape online.
+``--shape ensemble`` (default) is the method as the benchmark runs it: the mean shape of the error
+ensemble, :attr:`PhysicsPrior.peak_shape <pigp_torch.prior.PhysicsPrior>`. ``--shape model``
+gives it the model ring's own shape :math:`2 c_m \Sigma` instead (``shape_prior="model"``).
 
 Usage::
 
     python benchmarks/centre_information.py --seeds 6 7 9 10 --budget 60 --at 40 60
     python benchmarks/centre_information.py --seeds 7 --budget 60 --shape oracle
     python benchmarks/centre_information.py --seeds 1 2 3 4 5 6 7 8 9 10 11 12 --budget 60 \
-        --at 40 60 --shape ensemble
+        --at 40 60 --shape model
 """
 
 from __future__ import annotations
@@ -50,7 +49,6 @@ import torch
 from pigp_torch.benchmark import METHODS, MethodSpec, model_prior, run_one
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.ensemble import ensemble_seeds
 
 
 def r95(f_star: float, f0: float, f_inf: float) -> float:
@@ -58,17 +56,6 @@ def r95(f_star: float, f0: float, f_inf: float) -> float:
     peak = f_star - f_inf
     c = peak**-2
     return math.sqrt(c * ((1.0 - 0.05 * (f_star - f0) / peak) ** -2 - 1.0))
-
-
-def ensemble_shape(base: PhysicsPrior, n: int) -> PhysicsPrior:
-    r"""``base`` with the mean shape :math:`\bar B` of ``n`` ensemble rings (its :math:`c_m`)."""
-    shapes = []
-    for i, seed in enumerate(ensemble_seeds(n)):
-        ring = model_prior(seed)
-        shapes.append(2.0 * (ring.f_x0 - ring.f_inf) ** -2 * ring.precision)
-        print(f"  shape of ensemble ring {seed} ({i + 1}/{n})", flush=True)
-    c_m = (base.f_x0 - base.f_inf) ** -2
-    return dataclasses.replace(base, precision=torch.stack(shapes).mean(0) / (2.0 * c_m))
 
 
 def analyse(opt, n: int, x_star: torch.Tensor, f_star: float) -> dict:
@@ -99,7 +86,7 @@ def main(argv=None) -> None:
     ap.add_argument("--seeds", type=int, nargs="+", required=True, help="machine error seeds")
     ap.add_argument("--budget", type=int, default=60, help="evaluations per run (default 60)")
     ap.add_argument("--at", type=int, nargs="+", default=None, help="readings to analyse at")
-    ap.add_argument("--shape", choices=["model", "oracle", "ensemble"], default="model")
+    ap.add_argument("--shape", choices=["model", "oracle", "ensemble"], default="ensemble")
     ap.add_argument("--prior", default=None, help="prior JSON (default: model ring 0 + ensemble)")
     ap.add_argument("--center-ensemble", type=int, default=40)
     args = ap.parse_args(argv)
@@ -112,11 +99,11 @@ def main(argv=None) -> None:
     else:
         print(f"model prior: ring 0 + {args.center_ensemble} ensemble rings ...", flush=True)
         base = model_prior(0, center_ensemble=args.center_ensemble)
-    if args.shape == "ensemble":
-        base = ensemble_shape(base, args.center_ensemble)
     spec = METHODS["pigp-physics"]
+    if args.shape == "model":
+        spec = spec.with_options(shape_prior="model")
     print(
-        f"shape={args.shape}  distances in the metric of the prior's B\n"
+        f"shape={args.shape}  distances in the metric of the run's B\n"
         f"{'seed':>4} {'n':>4} {'steps95':>7} {'gain@n':>6} {'d_fit':>6} {'d_laplace':>9} "
         f"{'r95':>5} {'nlp_fit':>7} {'nlp_true':>8}"
     )
@@ -124,6 +111,7 @@ def main(argv=None) -> None:
         prior = base
         if args.shape == "oracle":  # the machine's own shape: a diagnostic, not a method
             prior = dataclasses.replace(model_prior(seed), center_cov=base.center_cov)
+            # (no peak_shape: the run takes the machine ring's own 2 c Sigma)
         built = []
 
         def builder(ctx, _built=built, **options):

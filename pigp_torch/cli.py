@@ -195,11 +195,11 @@ def cmd_build_prior(args) -> int:
 
 
 def _with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None):
-    """``prior`` with ``center_cov`` from ``size`` simulated rings of the data's optics; neither
-    the model ring nor the machine under test may be one of them."""
+    """``prior`` with ``center_cov`` and ``peak_shape`` from ``size`` simulated rings of the
+    data's optics; neither the model ring nor the machine under test may be one of them."""
     import dataclasses
 
-    from pigp_torch.simulation.ensemble import center_covariance, ensemble_seeds, machine_centers
+    from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
 
     seeds = ensemble_seeds(size)
     for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
@@ -207,11 +207,11 @@ def _with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None):
             raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
                              f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
     print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})", flush=True)
-    used, X = machine_centers(
+    optima = ensemble_optima(
         seeds, knobs=prior.knob_names, optics=data_meta.get("optics", "achromat"), progress=True
     )
-    provenance = {**prior.provenance, "center_ensemble_seeds": [used[0], used[-1], len(used)]}
-    return dataclasses.replace(prior, center_cov=center_covariance(X), provenance=provenance)
+    provenance = {**prior.provenance, "center_ensemble_seeds": optima.seed_range}
+    return dataclasses.replace(prior, **optima.prior_fields(), provenance=provenance)
 
 
 # ----------------------------------------------------------------------------- compare
@@ -432,9 +432,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         metavar="N",
-        help="also store the covariance of the optimum over N simulated rings with other error "
-        "seeds (1001...; same knobs and optics as the surrogate's data; ~2-3 s a ring); "
-        "pigp-physics uses it as its prior on the machine's optimum (default 0: none)",
+        help="also store the covariance of the optimum and the mean shape of the peak over N "
+        "simulated rings with other error seeds (1001...; same knobs and optics as the "
+        "surrogate's data; ~3-7 s a ring); pigp-physics uses them as its prior on the machine's "
+        "optimum and as the shape of its physics form (default 0: none)",
     )
     p.set_defaults(func=cmd_build_prior)
 
@@ -481,7 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=40,
         metavar="N",
         help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
-        "where the machine's optimum lies (~2-3 s a ring; 0: box prior; default 40)",
+        "where the machine's optimum lies and the mean shape of the peak (~3-7 s a ring; 0: "
+        "box prior and the model ring's shape; default 40)",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
     p.set_defaults(func=cmd_compare)
@@ -515,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=20,
         metavar="N",
         help="simulated rings whose optima give pigp-physics its prior on where the machine's "
-        "optimum lies (~2-3 s a ring; 0: none; default 20)",
+        "optimum lies and the mean shape of the peak (~3-7 s a ring; 0: none; default 20)",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/demo"), help="output folder")
     p.set_defaults(func=cmd_demo)

@@ -34,10 +34,11 @@ Methods (``method.name``; ``method.options`` are checked against the builder's a
 * ``pigp-physics``: :class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO` (the physics form of
   the loss rate fitted online, shape from the prior; options ``beta``, ``step_limit``,
   ``n_starts``, ``exploit_every``, the adaptive trust box ``adapt_box``, ``min_step_limit``,
-  ``success_streak``, ``failure_streak``, ``success_tol``, ``center_prior``, and the model's
-  ``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``, ``log_beta_std``,
-  ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``); needs a prior file, best one built
-  with ``pigp build-prior --center-ensemble 40`` (the prior on where the optimum lies).
+  ``success_streak``, ``failure_streak``, ``success_tol``, ``center_prior``, ``shape_prior``,
+  and the model's ``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
+  ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``); needs a prior
+  file, best one built with ``pigp build-prior --center-ensemble 40`` (the prior on where the
+  optimum lies and the mean shape of the peak).
 * ``ml2``: BayesOpt with the ML-II diagonal GP, with no archive (a live machine has none at hand):
   hyperparameters fitted on the run data every ``refit_every`` asks (warm-started); ``noise``
   fixes the noise (``None``: learned).

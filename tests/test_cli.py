@@ -104,7 +104,7 @@ def test_demo_refuses_a_machine_among_the_ensemble_rings(capsys):
 @pytest.mark.slow
 def test_demo_with_center_ensemble(tmp_path):
     """`pigp demo --center-ensemble 14`: the saved prior carries the 13 x 13 covariance of the
-    optima of rings 1001-1014, and pigp-physics ran with it (~40 s)."""
+    optima of rings 1001-1014 and their mean peak shape, and pigp-physics ran with them (~60 s)."""
     out = tmp_path / "demo"
     argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
     argv += ["--methods", "pigp-physics", "--center-ensemble", "14", "-o", str(out)]
@@ -113,3 +113,4 @@ def test_demo_with_center_ensemble(tmp_path):
     assert p.center_cov.shape == (13, 13)
     assert p.provenance["center_ensemble_seeds"] == [1001, 1014, 14]
     assert torch.linalg.eigvalsh(p.center_cov).min() > 0
+    assert p.peak_shape.shape == (13, 13) and torch.linalg.eigvalsh(p.peak_shape).min() > 0

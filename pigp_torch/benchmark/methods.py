@@ -25,10 +25,11 @@ Defaults (documented choices):
   ±0.6; the plain PI-GP at ±0.6: 0.12). On held-out seeds 5–12 after 100 evaluations: median
   gain 0.68 vs 0.31 for ``pigp``; no run reaches 95 % of the optimum in 100 evaluations.
 * ``pigp-physics``: :class:`~pigp_torch.optimizers.PhysicsModelBO`, the physics form fitted
-  online, with the prior on its centre from the prior's error ensemble (``center_cov``; the
-  benchmark computes it from :data:`~pigp_torch.benchmark.protocol.ENSEMBLE_SIZE` model rings
-  with seeds from 1001). ``pigp-physics-box``: the same with the isotropic box prior on the
-  centre (1 half-range), the method before the ensemble prior.
+  online, with the prior on its centre and its shape from the prior's error ensemble
+  (``center_cov``, ``peak_shape``; the benchmark computes them from
+  :data:`~pigp_torch.benchmark.protocol.ENSEMBLE_SIZE` model rings with seeds from 1001).
+  ``pigp-physics-box``: the same with what the model ring alone gives, the method before the
+  ensemble: its own shape and the isotropic box prior on the centre (1 half-range).
 * ``nelder-mead``: adaptive coefficients, ``initial_simplex_size = 0.05`` of each knob's full
   range (= ±0.1 in the normalized units, ~1.5e-3 1/m), restarts when converged.
 * ``rcds``: ``noise = 0.04`` (the machine's), initial ``step = 0.05`` of the knob range,
@@ -226,8 +227,9 @@ def build_pigp_physics(ctx: RunContext, **options) -> PhysicsModelBO:
     r"""UCB on the online-fitted physics form :math:`f_\infty + (c + \beta(\mathbf x -
     \boldsymbol\mu)^\top B(\mathbf x - \boldsymbol\mu))^{-1/2}`, :math:`B` from ``ctx.prior``
     (:class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO`; options override its defaults:
-    ``beta=4``, ``step_limit=0.6``, ``residual_std=0.05``, the centre prior from the prior's
-    error ensemble when it has one, else ``center_std=1.0`` half-range around the box centre)."""
+    ``beta=4``, ``step_limit=0.6``, ``residual_std=0.05``, the centre prior and the shape from
+    the prior's error ensemble when it has one, else ``center_std=1.0`` half-range around the
+    box centre and the model ring's shape)."""
     return PhysicsModelBO(ctx.bounds, ctx.prior, seed=ctx.seed, noise=ctx.noise, **options)
 
 
@@ -326,7 +328,10 @@ METHODS: dict[str, MethodSpec] = {
     "pigp-fast": MethodSpec("pigp-fast", build_pigp_fast, "gp"),
     "pigp-physics": MethodSpec("pigp-physics", build_pigp_physics, "gp", {}, True),
     "pigp-physics-box": MethodSpec(
-        "pigp-physics-box", build_pigp_physics, "gp", {"center_prior": "box"}
+        "pigp-physics-box",
+        build_pigp_physics,
+        "gp",
+        {"center_prior": "box", "shape_prior": "model"},
     ),
     "ml2": MethodSpec("ml2", build_ml2, "gp"),
     "nelder-mead": MethodSpec("nelder-mead", build_nelder_mead, "direct"),

@@ -36,7 +36,7 @@ from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.prior import PhysicsPrior, prior_from_model
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.ensemble import center_covariance, ensemble_seeds, machine_centers
+from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
 from pigp_torch.simulation.lattice import knob_names_for
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
@@ -84,19 +84,19 @@ def model_prior(
     (~3 s at 13 knobs).
 
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
-    optimum over ``n`` more model rings with error seeds
-    :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
-    (:func:`~pigp_torch.simulation.ensemble.machine_centers`, ~2-3 s a ring; ``progress``
+    optimum, and ``peak_shape``, the mean shape of the peak, over ``n`` more model rings with
+    error seeds :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
+    (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, ~3-7 s a ring; ``progress``
     prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
     """
     sim = Spear3Coupling(int(model_seed), knobs=knobs)
     provenance = {"model": f"Spear3Coupling(error_seed={int(model_seed)})"}
-    center_cov = None
+    fields = {}
     if int(center_ensemble) > 0:
-        seeds = ensemble_seeds(int(center_ensemble))
-        used, X = machine_centers(seeds, knobs=knobs, progress=progress)
-        center_cov = center_covariance(X)
-        provenance["center_ensemble_seeds"] = [used[0], used[-1], len(used)]
+        optima = ensemble_optima(ensemble_seeds(int(center_ensemble)), knobs=knobs,
+                                 progress=progress)  # fmt: skip
+        fields = optima.prior_fields()
+        provenance["center_ensemble_seeds"] = optima.seed_range
     prior = prior_from_model(
         sim.loss_rate,
         sim.bounds,
@@ -107,7 +107,7 @@ def model_prior(
         knob_names=sim.knob_names,
         provenance=provenance,
     )
-    return prior if center_cov is None else dataclasses.replace(prior, center_cov=center_cov)
+    return dataclasses.replace(prior, **fields) if fields else prior
 
 
 def score_run(table: pd.DataFrame, sim: Spear3Coupling, f_star: float) -> pd.DataFrame:

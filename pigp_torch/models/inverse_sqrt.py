@@ -18,7 +18,10 @@ the Hessian of :math:`\log(f - f_\infty)` at the model's optimum is :math:`-B_m 
 Measured on the simulated SPEAR3-like rings: along the eigenvectors of this :math:`B` (model seed
 0) the machines' own Hessians of :math:`g` at their optima agree within 5-30 % (the weakest
 direction within a factor 2.5), while the machines' minima :math:`c` and centres
-:math:`\boldsymbol\mu` are unrelated to the model's. So the machine-specific unknowns are
+:math:`\boldsymbol\mu` are unrelated to the model's. Any one ring's shape carries its own errors;
+the mean shape over an error ensemble of model rings
+(:attr:`PhysicsPrior.peak_shape <pigp_torch.prior.PhysicsPrior>`, option ``shape``) averages
+them out and is the better estimate for an unseen machine. So the machine-specific unknowns are
 :math:`\boldsymbol\mu` (``d``), :math:`\log c` and a global :math:`\log\beta`
 (:math:`\beta\approx1`): ``d + 2`` numbers instead of a GP's whole function.
 
@@ -85,6 +88,10 @@ class InverseSqrtPeakModel:
             :math:`f_\infty` belongs to the model ring); ``0`` keeps :math:`f_\infty` fixed.
             Measured on the 12-seed spear3-13 benchmark with ``s_f = 0.05``: gain after 100
             evaluations median 0.78 against 0.89 with it fixed, so fixed is the default.
+        shape: ``d x d`` shape :math:`B` to use instead of the model ring's
+            :math:`2 c_m \Sigma`, e.g. the ensemble mean
+            :attr:`PhysicsPrior.peak_shape <pigp_torch.prior.PhysicsPrior>` (``None``: the
+            model ring's).
         shape_std: if ``> 0``, the shape is fitted too, along the eigenvectors
             :math:`\mathbf v_k` of :math:`B` (eigenvalues :math:`\lambda_k`):
             :math:`B(\mathbf s) = \sum_k \lambda_k e^{s_k} \mathbf v_k \mathbf v_k^\top` with
@@ -94,7 +101,8 @@ class InverseSqrtPeakModel:
         max_iter: L-BFGS-B iterations per start.
 
     Raises:
-        ValueError: knob count of ``prior`` and ``bounds`` differ, or non-positive scales.
+        ValueError: knob count of ``prior`` and ``bounds`` differ, non-positive scales, or a
+            ``shape`` that is not ``d x d`` positive definite.
     """
 
     def __init__(
@@ -111,6 +119,7 @@ class InverseSqrtPeakModel:
         center_cov=None,
         center_cov_scale: float = 3.0,
         center_floor_std: float = 0.22,
+        shape=None,
         shape_std: float = 0.0,
         max_iter: int = 300,
     ) -> None:
@@ -139,7 +148,12 @@ class InverseSqrtPeakModel:
         self.f_inf_std = float(f_inf_std)
         self.f_inf = float(prior.f_inf)
         self.log_c_model = -2.0 * math.log(prior.f_x0 - prior.f_inf)
-        self.B = 2.0 * math.exp(self.log_c_model) * prior.precision.to(DTYPE)
+        if shape is None:
+            self.B = 2.0 * math.exp(self.log_c_model) * prior.precision.to(DTYPE)
+        else:
+            self.B = torch.as_tensor(shape, dtype=DTYPE)
+            if self.B.shape != (d, d) or not torch.linalg.eigvalsh(self.B).min() > 0:
+                raise ValueError(f"shape must be a {d} x {d} positive-definite matrix")
         self.B = (self.B + self.B.T) / 2
         self.shape_std = float(shape_std)
         if self.shape_std > 0:  # eigenbasis of the fitted shape B(s)

@@ -95,6 +95,12 @@ class PhysicsPrior:
             where the optimum of a machine lies is random too, but in a few directions only
             (90 % of its B-weighted variance in 3 of 13 at SPEAR3). Used by
             :class:`~pigp_torch.optimizers.PhysicsModelBO` as the prior on the fitted centre.
+        peak_shape: optional ``d x d`` symmetric positive-definite mean, over the same ensemble,
+            of the peak shape :math:`B = \tfrac12 \nabla^2 (f - f_\infty)^{-2}` at each ring's
+            optimum (1 / (knob² objective²)). The model ring alone gives
+            :math:`B = 2 \Sigma / (f(\mathbf x_0) - f_\infty)^2`; the ensemble mean averages out
+            its errors. Used by :class:`~pigp_torch.optimizers.PhysicsModelBO` as the shape of
+            the fitted physics form.
 
     Raises:
         ValueError: on sizes that do not match ``len(knob_names)``, non-finite values, a precision
@@ -113,6 +119,7 @@ class PhysicsPrior:
     gradient: Tensor | None = None
     provenance: dict[str, Any] = field(default_factory=dict)
     center_cov: Tensor | None = None
+    peak_shape: Tensor | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.knob_names, str) or not all(isinstance(n, str) for n in self.knob_names):
@@ -143,6 +150,10 @@ class PhysicsPrior:
         if self.center_cov is not None:
             C = _as_float64(self.center_cov, "center_cov")
             self.center_cov = _check_spd(C, d, "center_cov")
+        if self.peak_shape is not None:
+            self.peak_shape = _check_spd(
+                _as_float64(self.peak_shape, "peak_shape"), d, "peak_shape"
+            )
 
         self.f_x0 = _as_finite_float(self.f_x0, "f_x0")
         self.f_inf = _as_finite_float(self.f_inf, "f_inf")
@@ -252,6 +263,7 @@ class PhysicsPrior:
             "gradient": self.gradient.tolist(),
             "provenance": self.provenance,
             **({} if self.center_cov is None else {"center_cov": self.center_cov.tolist()}),
+            **({} if self.peak_shape is None else {"peak_shape": self.peak_shape.tolist()}),
         }
 
     @classmethod
@@ -271,6 +283,7 @@ class PhysicsPrior:
             gradient=data.get("gradient"),
             provenance=data.get("provenance", {}),
             center_cov=data.get("center_cov"),
+            peak_shape=data.get("peak_shape"),
         )
 
     def save(self, path: str | Path) -> None:

@@ -51,15 +51,19 @@ def test_prior_for_other_knobs_is_refused(prior3):
 
 def test_model_prior_with_center_ensemble_on_three_knobs():
     """``center_ensemble=n`` adds the second moment of the optima of the n rings 1001... (here
-    3-knob rings, so 4 rings suffice for a full-rank 3 x 3 matrix), with provenance."""
-    from pigp_torch.simulation.ensemble import machine_centers
+    3-knob rings, so 4 rings suffice for a full-rank 3 x 3 matrix) and their mean peak shape,
+    with provenance."""
+    from pigp_torch.simulation.ensemble import ensemble_optima
 
     p = model_prior(0, n_starts=2, knobs=THREE, center_ensemble=4)
-    seeds, X = machine_centers([1001, 1002, 1003, 1004], knobs=THREE)
-    assert seeds == [1001, 1002, 1003, 1004]
+    optima = ensemble_optima([1001, 1002, 1003, 1004], knobs=THREE)
+    X = optima.centers
+    assert optima.seeds == [1001, 1002, 1003, 1004]
     torch.testing.assert_close(p.center_cov, X.T @ X / 4, rtol=1e-12, atol=0)
+    torch.testing.assert_close(p.peak_shape, optima.shapes.mean(0), rtol=1e-12, atol=0)
     assert p.provenance["center_ensemble_seeds"] == [1001, 1004, 4]
-    assert model_prior(0, n_starts=2, knobs=THREE).center_cov is None
+    alone = model_prior(0, n_starts=2, knobs=THREE)
+    assert alone.center_cov is None and alone.peak_shape is None
 
 
 def test_run_benchmark_builds_the_ensemble_only_for_methods_that_use_it(monkeypatch):
@@ -73,7 +77,7 @@ def test_run_benchmark_builds_the_ensemble_only_for_methods_that_use_it(monkeypa
     def forbidden(*args, **kwargs):
         raise AssertionError("the ensemble was computed for a method that does not use it")
 
-    monkeypatch.setattr(protocol, "machine_centers", forbidden)
+    monkeypatch.setattr(protocol, "ensemble_optima", forbidden)
     df = run_benchmark(
         ["nelder-mead"], [1002], budgets={"direct": 3}, progress=False, knobs=THREE,
         optimum_starts=0, center_ensemble=3,

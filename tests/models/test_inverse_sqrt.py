@@ -206,6 +206,43 @@ def test_physics_bo_reaches_the_peak_of_another_machine(prior):
     assert (best - f0) / (fstar - f0) >= 0.95
 
 
+def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prior):
+    """``centre_information(x)`` equals tr(B C_mu) before minus after adding a reading at x to
+    the Laplace fit (theta held fixed), and is largest off the fitted centre (the form is flat
+    there); ``exploit_every`` / ``info_every`` pick the acquisition of each ask."""
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2, exploit_every=4, info_every=2)
+    model = bo.model
+    theta = true_theta(model, [0.004, -0.003, 0.002, 0.0, 0.001], 0.8, 1.0)
+    gen = torch.Generator().manual_seed(2)
+    X = (torch.rand(12, D, generator=gen, dtype=DT) * 2 - 1) * 0.015
+    Y = model.form(X, theta) + prior.noise * torch.randn(12, generator=gen, dtype=DT)
+    for x, y in zip(X, Y, strict=True):
+        bo.tell(x, float(y))
+    model.fit(X, Y)
+    B = model.shape()
+
+    def trace(cov):
+        return float(torch.trace(B @ cov[:D, :D]))
+
+    before = trace(model.cov)
+    Xn = model.center() + (torch.rand(4, D, generator=gen, dtype=DT) * 2 - 1) * 0.01
+    gains = bo.centre_information(Xn)
+    for x, gain in zip(Xn, gains, strict=True):
+        model._laplace(torch.cat([X, x.unsqueeze(0)]))
+        assert float(gain) == pytest.approx(before - trace(model.cov), rel=1e-8)
+        model._laplace(X)
+    # at the centre only through the correlation of mu with c: a few per cent of the best
+    assert float(bo.centre_information(model.center().unsqueeze(0))[0]) < 0.05 * float(gains.max())
+    kinds = []
+    for _ in range(4):  # told 12, 13, 14, 15: exploit (takes precedence), UCB, inform, UCB
+        x = bo.ask()
+        kinds.append((bo.last_info["exploit"], bo.last_info["inform"]))
+        bo.tell(x, float(model.form(x.unsqueeze(0), theta)[0]))
+    assert kinds == [(True, False), (False, False), (False, True), (False, False)]
+    with pytest.raises(ValueError, match="info_every must be >= 0"):
+        PhysicsModelBO(prior.bounds, prior, info_every=-1)
+
+
 def test_adaptive_trust_box_halves_after_failures_and_doubles_after_successes(prior):
     """TuRBO-like rule on a scripted sequence of best posterior means (tol = noise/4 = 0.005):
     four non-improvements halve the half-width (floor min_step_limit), three improvements in a
@@ -276,10 +313,55 @@ def test_center_prior_option_of_physics_bo(prior):
     torch.testing.assert_close(PhysicsModelBO(prior.bounds, with_cov).model.center_cov, C)
     assert PhysicsModelBO(prior.bounds, with_cov, center_prior="box").model.center_cov is None
     assert PhysicsModelBO(prior.bounds, prior).center_prior == "box"
-    with pytest.raises(ValueError, match="needs a prior with center_cov"):
+    with pytest.raises(
+        ValueError, match="center_prior='ensemble' needs a prior from an error ensemble"
+    ):
         PhysicsModelBO(prior.bounds, prior, center_prior="ensemble")
     with pytest.raises(ValueError, match="center_prior must be"):
         PhysicsModelBO(prior.bounds, prior, center_prior="wide")
+
+
+def test_shape_prior_option_of_physics_bo(prior):
+    """``auto`` takes the prior's ensemble-mean shape when it has one (the form's B and the
+    residual kernel's precision follow it), ``model`` keeps 2 c_m Sigma, ``ensemble`` needs it;
+    a malformed shape is refused."""
+    import dataclasses
+
+    B_model = 2.0 * (prior.f_x0 - prior.f_inf) ** -2 * prior.precision
+    lam, V = torch.linalg.eigh(B_model)
+    B_ens = (V * lam * torch.tensor([3.0, 1.0, 1.0, 1.0, 0.3], dtype=DT)) @ V.T
+    with_shape = dataclasses.replace(prior, peak_shape=B_ens)
+    bo = PhysicsModelBO(prior.bounds, with_shape)
+    assert bo.shape_prior == "ensemble" and bo.center_prior == "box"
+    assert torch.equal(bo.model.B, with_shape.peak_shape)
+    own = PhysicsModelBO(prior.bounds, with_shape, shape_prior="model")
+    assert own.shape_prior == "model"
+    torch.testing.assert_close(own.model.B, B_model, rtol=1e-14, atol=0)
+    assert PhysicsModelBO(prior.bounds, prior).shape_prior == "model"
+    with pytest.raises(ValueError, match="shape_prior='ensemble' needs a prior from an error"):
+        PhysicsModelBO(prior.bounds, prior, shape_prior="ensemble")
+    with pytest.raises(ValueError, match="shape_prior must be auto, ensemble or model"):
+        PhysicsModelBO(prior.bounds, prior, shape_prior="box")
+    with pytest.raises(ValueError, match="shape must be a 5 x 5 positive-definite"):
+        InverseSqrtPeakModel(prior, prior.bounds, shape=-B_ens)
+    # the fit uses the given shape: noise-free data of a form with B_ens are fitted exactly,
+    # while the model ring's shape cannot reproduce them
+    mu = torch.tensor([0.003, -0.002, 0.001, 0.0, -0.004], dtype=DT)
+    fits = {}
+    for name, shape in (("ensemble", B_ens), ("model", None)):
+        model = InverseSqrtPeakModel(prior, prior.bounds, shape=shape, noise=1e-4,
+                                     residual_std=0.0)  # fmt: skip
+        theta = true_theta(model, mu, c=1.2, beta=1.0)
+        X = (
+            mu
+            + (torch.rand(60, D, generator=torch.Generator().manual_seed(3), dtype=DT) - 0.5) / 50
+        )
+        Y = InverseSqrtPeakModel(prior, prior.bounds, shape=B_ens).form(X, theta)
+        model.fit(X, Y)
+        fits[name] = float((model.form(X) - Y).pow(2).mean().sqrt())
+        if name == "ensemble":
+            torch.testing.assert_close(model.center(), mu, rtol=0, atol=1e-5)
+    assert fits["ensemble"] < 1e-6 < 1e-3 < fits["model"]
 
 
 def _steps_to_95(bo: PhysicsModelBO, f, noise: float, seed: int, budget: int) -> int:

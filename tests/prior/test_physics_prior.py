@@ -53,19 +53,24 @@ def test_save_load_round_trip_is_exact(tmp_path):
         assert getattr(p, name) == getattr(q, name), name
 
 
-def test_center_cov_round_trip_and_absence(tmp_path):
-    """An ensemble ``center_cov`` is saved and loaded bit for bit; a prior without one writes no
-    such key and loads with ``None`` (files from before the field still load)."""
+def test_ensemble_fields_round_trip_and_absence(tmp_path):
+    """An ensemble ``center_cov`` and ``peak_shape`` are saved and loaded bit for bit; a prior
+    without them writes no such keys and loads with ``None`` (files from before the fields still
+    load)."""
     g = torch.Generator().manual_seed(1)
     A = torch.randn(5, 3, generator=g, dtype=torch.float64) * 1e-2
     C = A.T @ A / 5
-    p = _prior(center_cov=C)
+    p = _prior(center_cov=C, peak_shape=torch.linalg.inv(C) * 7.0)
     p.save(tmp_path / "with.json")
     q = PhysicsPrior.load(tmp_path / "with.json")
-    assert torch.equal(q.center_cov, p.center_cov) and q.center_cov.dtype == torch.float64
+    for name in ("center_cov", "peak_shape"):
+        assert torch.equal(getattr(q, name), getattr(p, name)), name
+        assert getattr(q, name).dtype == torch.float64
     _prior().save(tmp_path / "without.json")
-    assert "center_cov" not in json.loads((tmp_path / "without.json").read_text())
-    assert PhysicsPrior.load(tmp_path / "without.json").center_cov is None
+    record = json.loads((tmp_path / "without.json").read_text())
+    assert "center_cov" not in record and "peak_shape" not in record
+    loaded = PhysicsPrior.load(tmp_path / "without.json")
+    assert loaded.center_cov is None and loaded.peak_shape is None
 
 
 def test_load_rejects_foreign_json(tmp_path):
@@ -160,6 +165,8 @@ def test_gradient_defaults_to_zero():
         ({"center_cov": torch.eye(2)}, "center_cov must have shape"),
         ({"center_cov": torch.diag(torch.tensor([1.0, 0.0, 1.0]))}, "center_cov must be positive"),
         ({"center_cov": torch.tensor([[1.0, 0.1, 0], [0, 1, 0], [0, 0, 1]])}, "center_cov must be"),
+        ({"peak_shape": torch.eye(4)}, "peak_shape must have shape"),
+        ({"peak_shape": -torch.eye(3)}, "peak_shape must be positive"),
         ({"provenance": {"bad": object()}}, "JSON"),
         ({"provenance": {"bad": float("nan")}}, "JSON"),
     ],
