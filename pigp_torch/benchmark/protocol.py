@@ -41,7 +41,8 @@ from pigp_torch.simulation.lattice import knob_names_for
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
-#: Model rings in the error ensemble that gives the prior's ``center_cov`` (~2 min to compute).
+#: Model rings in the error ensemble that gives the prior's ``center_cov`` and ``peak_shape``
+#: (~3-5 min to compute on one core).
 ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")

@@ -67,6 +67,9 @@ def peak_shape_at(sim: Spear3Coupling, x: torch.Tensor) -> torch.Tensor:
     :math:`c + (\mathbf x - \boldsymbol\mu)^\top B (\mathbf x - \boldsymbol\mu)` to second order;
     this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units).
     """
+    # Not prior.log_excess_hessian: that is log(f - f_inf), whose Hessian gives B only at an exact
+    # stationary point (-H c there); g's Hessian is B wherever g is quadratic, and simulation/
+    # does not import from prior/ (same layer, DESIGN.md §3).
     f_inf = float(sim.loss_background)
 
     def g(z: torch.Tensor) -> torch.Tensor:
