@@ -255,6 +255,63 @@ class InverseSqrtPeakModel:
         r"""The fitted centre :math:`\hat{\boldsymbol\mu}` (may lie outside the bounds)."""
         return self._fitted()[: self.dim].clone()
 
+    def box_optimum(self, tol: float = 1e-9) -> tuple[Tensor, Tensor]:
+        r"""The form's maximizer inside the knob box and which knobs sit on a bound there.
+
+        :math:`\hat{\mathbf x} = \arg\min_{\mathbf x \in \text{box}} (\mathbf x -
+        \hat{\boldsymbol\mu})^\top B (\mathbf x - \hat{\boldsymbol\mu})`, the projection of
+        the fitted centre onto the box in the metric of :math:`B` (:math:`c` and :math:`\beta` do
+        not move it): :math:`\hat{\boldsymbol\mu}` itself when it lies inside. Solved exactly as
+        a bounded least-squares problem (``scipy.optimize.lsq_linear``, BVLS). Returns
+        ``(x_hat, active)``, ``active`` a boolean ``d`` mask of the knobs at a bound with the
+        form still rising outward (relative tolerance ``tol`` of the half-range)."""
+        mu = self.center()
+        inside = (mu >= self.bounds[0]) & (mu <= self.bounds[1])
+        if bool(inside.all()):
+            return mu, torch.zeros(self.dim, dtype=torch.bool)
+        L = torch.linalg.cholesky(self.shape())  # B = L L^T: |L^T (x - mu)|^2
+        A = L.T.numpy()
+        res = scipy.optimize.lsq_linear(
+            A, A @ mu.numpy(), bounds=(self.bounds[0].numpy(), self.bounds[1].numpy()),
+            method="bvls", tol=1e-12,
+        )  # fmt: skip
+        x = torch.from_numpy(res.x).to(DTYPE)
+        grad = self.shape() @ (x - mu)  # half the gradient of the quadratic; > 0 pushes down
+        slack = tol * (self.bounds[1] - self.bounds[0]) / 2
+        active = ((x <= self.bounds[0] + slack) & (grad > 0)) | (
+            (x >= self.bounds[1] - slack) & (grad < 0)
+        )
+        return x, active
+
+    def regret_metric(self) -> Tensor:
+        r"""``d x d`` matrix :math:`M` with which an error :math:`\boldsymbol\delta` of the
+        fitted centre costs :math:`\propto \boldsymbol\delta^\top M \boldsymbol\delta` at the
+        box optimum :meth:`box_optimum`.
+
+        With the free knobs :math:`F` and the active ones :math:`A` (fixed at their bound), the
+        box optimum is :math:`\hat{\mathbf x}_F = \boldsymbol\mu_F - B_{FF}^{-1} B_{FA}
+        (\mathbf b_A - \boldsymbol\mu_A)`, so :math:`P = \partial\hat{\mathbf x}_F /
+        \partial\boldsymbol\mu = [I \;\; B_{FF}^{-1}B_{FA}]`, and the loss on the face is
+        quadratic with Hessian :math:`\propto B_{FF}`: :math:`M = P^\top B_{FF} P`, which is
+        :math:`B` less the Schur complement :math:`B_{AA} - B_{AF}B_{FF}^{-1}B_{FA}` in the
+        active block (how far the centre lies beyond the face does not matter). Inside the box
+        :math:`M = B`."""
+        B = self.shape()
+        _, active = self.box_optimum()
+        if not bool(active.any()):
+            return B
+        F = ~active
+        M = B.clone()
+        BAA = B[active][:, active]
+        if bool(F.any()):
+            BAF = B[active][:, F]
+            schur = BAA - BAF @ torch.linalg.solve(B[F][:, F], BAF.T)
+        else:
+            schur = BAA
+        idx = active.nonzero().squeeze(-1)
+        M[idx.unsqueeze(-1), idx] -= schur
+        return M
+
     def peak(self) -> float:
         r"""The fitted peak value :math:`f_\infty + \hat c^{-1/2}`."""
         return float(self.background()) + math.exp(-0.5 * float(self._fitted()[self.dim]))

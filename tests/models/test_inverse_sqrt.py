@@ -243,6 +243,65 @@ def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prio
         PhysicsModelBO(prior.bounds, prior, info_every=-1)
 
 
+def test_box_optimum_is_the_b_metric_projection_and_regret_metric_its_jacobian(prior):
+    """Inside the box: x_hat = mu, no knob active, M = B. Outside: x_hat equals an independent
+    bounded L-BFGS-B minimum of (x - mu)'B(x - mu); the active knobs are those on a bound; and
+    M = P' B_FF P with P = d x_hat_F / d mu by central differences of box_optimum."""
+    import scipy.optimize
+
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    half = float(prior.bounds[1, 0])
+    inside = torch.tensor([0.004, -0.003, 0.002, 0.0, 0.001], dtype=DT)
+    model.theta = true_theta(model, inside, 0.8, 1.0)
+    x, active = model.box_optimum()
+    assert torch.equal(x, inside) and not active.any()
+    assert torch.equal(model.regret_metric(), model.shape())
+    gen = torch.Generator().manual_seed(5)
+    B = model.shape()
+    Bn = B.numpy()
+    n_active = set()
+    for _ in range(6):
+        mu = (torch.rand(D, generator=gen, dtype=DT) * 2 - 1) * 2.2 * half
+        model.theta = true_theta(model, mu, 0.8, 1.3)
+        x, active = model.box_optimum()
+        m = mu.numpy()
+        ref = scipy.optimize.minimize(
+            lambda z, m=m: ((z - m) @ Bn @ (z - m), 2 * Bn @ (z - m)),
+            np.zeros(D), jac=True, method="L-BFGS-B", bounds=[(-half, half)] * D,
+            options={"ftol": 1e-15, "gtol": 1e-13, "maxiter": 5000},
+        )  # fmt: skip
+        torch.testing.assert_close(x, torch.from_numpy(ref.x), rtol=0, atol=1e-6 * half)
+        assert torch.equal(active, (x.abs() >= half * (1 - 1e-9)))
+        n_active.add(int(active.sum()))
+        eps = 1e-6 * half
+        P = []
+        for j in range(D):
+            tp, tm = model.theta.clone(), model.theta.clone()
+            tp[j] += eps
+            tm[j] -= eps
+            model.theta = tp
+            xp = model.box_optimum()[0]
+            model.theta = tm
+            xm = model.box_optimum()[0]
+            P.append((xp - xm) / (2 * eps))
+        model.theta = true_theta(model, mu, 0.8, 1.3)
+        F = ~active
+        P = torch.stack(P, 1)[F]
+        torch.testing.assert_close(
+            model.regret_metric(), P.T @ B[F][:, F] @ P, rtol=1e-6, atol=1e-6 * float(B.norm())
+        )
+    assert len(n_active - {0}) >= 2  # several faces (and edges) were exercised
+    # a diagonal shape: the active knobs drop out of M entirely (closed form)
+    diag = torch.diag(torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0], dtype=DT)) / half**2
+    model = InverseSqrtPeakModel(prior, prior.bounds, shape=diag)
+    model.theta = true_theta(model, [3 * half, 0.0, -2 * half, 0.5 * half, 0.0], 0.8, 1.0)
+    x, active = model.box_optimum()
+    torch.testing.assert_close(x, torch.tensor([half, 0.0, -half, 0.5 * half, 0.0], dtype=DT))
+    expected = diag.clone()
+    expected[0, 0] = expected[2, 2] = 0.0
+    torch.testing.assert_close(model.regret_metric(), expected)
+
+
 def test_adaptive_trust_box_halves_after_failures_and_doubles_after_successes(prior):
     """TuRBO-like rule on a scripted sequence of best posterior means (tol = noise/4 = 0.005):
     four non-improvements halve the half-width (floor min_step_limit), three improvements in a
