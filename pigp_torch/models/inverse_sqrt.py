@@ -269,14 +269,15 @@ class InverseSqrtPeakModel:
         inside = (mu >= self.bounds[0]) & (mu <= self.bounds[1])
         if bool(inside.all()):
             return mu, torch.zeros(self.dim, dtype=torch.bool)
-        L = torch.linalg.cholesky(self.shape())  # B = L L^T: |L^T (x - mu)|^2
-        A = L.T.numpy()
+        B = self.shape()
+        A = torch.linalg.cholesky(B).T.numpy()  # B = L L^T: minimize |L^T (x - mu)|^2
         res = scipy.optimize.lsq_linear(
             A, A @ mu.numpy(), bounds=(self.bounds[0].numpy(), self.bounds[1].numpy()),
             method="bvls", tol=1e-12,
         )  # fmt: skip
         x = torch.from_numpy(res.x).to(DTYPE)
-        grad = self.shape() @ (x - mu)  # half the gradient of the quadratic; > 0 pushes down
+        grad = B @ (x - mu)  # half the quadratic's gradient: > 0 at a lower bound (< 0 at an
+        # upper one) means the unconstrained minimum lies beyond that bound
         slack = tol * (self.bounds[1] - self.bounds[0]) / 2
         active = ((x <= self.bounds[0] + slack) & (grad > 0)) | (
             (x >= self.bounds[1] - slack) & (grad < 0)
@@ -285,14 +286,16 @@ class InverseSqrtPeakModel:
 
     def regret_metric(self) -> Tensor:
         r"""``d x d`` matrix :math:`M` with which an error :math:`\boldsymbol\delta` of the
-        fitted centre costs :math:`\propto \boldsymbol\delta^\top M \boldsymbol\delta` at the
-        box optimum :meth:`box_optimum`.
+        fitted centre costs :math:`\tfrac12\,\beta\,g(\hat{\mathbf x})^{-3/2}\,
+        \boldsymbol\delta^\top M \boldsymbol\delta` (to second order) at the box optimum
+        :math:`\hat{\mathbf x}` of :meth:`box_optimum`.
 
         With the free knobs :math:`F` and the active ones :math:`A` (fixed at their bound), the
         box optimum is :math:`\hat{\mathbf x}_F = \boldsymbol\mu_F - B_{FF}^{-1} B_{FA}
         (\mathbf b_A - \boldsymbol\mu_A)`, so :math:`P = \partial\hat{\mathbf x}_F /
         \partial\boldsymbol\mu = [I \;\; B_{FF}^{-1}B_{FA}]`, and the loss on the face is
-        quadratic with Hessian :math:`\propto B_{FF}`: :math:`M = P^\top B_{FF} P`, which is
+        quadratic with Hessian :math:`\beta g^{-3/2} B_{FF}` (the gradient of :math:`g`
+        vanishes along the face): :math:`M = P^\top B_{FF} P`, which is
         :math:`B` less the Schur complement :math:`B_{AA} - B_{AF}B_{FF}^{-1}B_{FA}` in the
         active block (how far the centre lies beyond the face does not matter). Inside the box
         :math:`M = B`."""
