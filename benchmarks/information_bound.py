@@ -153,8 +153,14 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", required=True, help="machine error seeds")
     ap.add_argument("--prior", default=None, help="prior JSON (default: model ring 0 + ensemble)")
-    ap.add_argument("--center-ensemble", type=int, default=40)
-    ap.add_argument("--max-readings", type=int, default=400)
+    ap.add_argument(
+        "--center-ensemble", type=int, default=40,
+        help="ensemble rings of the default prior (default 40; ignored with --prior)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--max-readings", type=int, default=400,
+        help="stop a design here if the regret is still above the bar (default 400)",
+    )  # fmt: skip
     ap.add_argument("--candidates", type=int, default=4096, help="Sobol candidates (default 4096)")
     ap.add_argument(
         "--replays", type=int, default=0,
@@ -170,7 +176,7 @@ def main(argv=None) -> None:
         prior = model_prior(0, center_ensemble=args.center_ensemble)
     print(f"noise {prior.noise}; regret bar = 5 % of the machine's gain f* - f0")
     print(
-        f"{'seed':>4} {'f0':>6} {'f*':>6} {'bar':>6} {'outside':>7} {'free':>4} "
+        f"{'seed':>4} {'f0':>6} {'f*':>6} {'bar':>6} {'beyond':>7} {'free':>4} "
         f"{'R_prior':>8} {'R@20':>7} {'R@40':>7} {'n95':>5}"
         + ("  replay: mean regret/bar, share <= bar" if args.replays else "")
     )
@@ -192,7 +198,7 @@ def main(argv=None) -> None:
         bar = 0.05 * (f_star - f0)
         x_hat, active = model.box_optimum()
         half = (sim.bounds[1] - sim.bounds[0]) / 2
-        outside = float((mu.abs() / half).max())
+        beyond = float((mu.abs() / half).max())  # > 1: the optimum lies outside the box
         regrets, design = greedy_design(
             model, candidates(model, x_hat, args.candidates, seed), args.max_readings, bar
         )
@@ -207,7 +213,7 @@ def main(argv=None) -> None:
             share = float((regret <= bar).double().mean())
             check = f"  {float(regret.mean()) / bar:.2f}, {share:.2f}"
         print(
-            f"{seed:>4} {f0:>6.3f} {f_star:>6.3f} {bar:>6.4f} {outside:>7.2f} "
+            f"{seed:>4} {f0:>6.3f} {f_star:>6.3f} {bar:>6.4f} {beyond:>7.2f} "
             f"{int((~active).sum()):>4} {regrets[0]:>8.4f} {at(20):>7} {at(40):>7} {n95:>5}"
             + check,
             flush=True,
