@@ -19,19 +19,16 @@ from pathlib import Path
 
 
 def _simulator(args):
-    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.ringargs import ring_spec_from_args
 
-    return Spear3Coupling(error_seed=args.seed, knobs=args.knobs, optics=args.optics)
+    return ring_spec_from_args(args).build(args.seed)
 
 
 def _add_machine_args(p: argparse.ArgumentParser, seed_help: str) -> None:
+    from pigp_torch.ringargs import add_ring_arguments
+
     p.add_argument("--seed", type=int, default=1, help=seed_help)
-    p.add_argument(
-        "--knobs", default="paper13", help="paper13 (default), powered14 or all72 skew windings"
-    )
-    p.add_argument(
-        "--optics", default="achromat", choices=["achromat", "low_emittance"], help="ring optics"
-    )
+    add_ring_arguments(p)
 
 
 # ----------------------------------------------------------------------------- generate-data
@@ -200,16 +197,22 @@ def _with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None):
     import dataclasses
 
     from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
+    from pigp_torch.simulation.spec import RingSpec, as_ring_spec
 
+    if data_meta.get("ring"):
+        spec = RingSpec.from_dict(data_meta["ring"])
+    else:  # data written without a ring record: the SPEAR3 ring with the prior's knobs
+        spec = as_ring_spec(None, knobs=tuple(prior.knob_names))
     seeds = ensemble_seeds(size)
     for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
         if seed in seeds:
             raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
                              f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
     print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})", flush=True)
-    optima = ensemble_optima(
-        seeds, knobs=prior.knob_names, optics=data_meta.get("optics", "achromat"), progress=True
-    )
+    model = spec.build(data_meta.get("error_seed", seeds[0]))
+    if list(model.knob_names) != list(prior.knob_names):
+        raise ValueError("the data's ring has other knobs than the prior")
+    optima = ensemble_optima(seeds, model=model, progress=True)
     provenance = {**prior.provenance, "center_ensemble_seeds": optima.seed_range}
     return dataclasses.replace(prior, **optima.prior_fields(), provenance=provenance)
 
@@ -246,8 +249,9 @@ def _write_comparison(df, out: Path, title: str) -> None:
 
 def cmd_compare(args) -> int:
     from pigp_torch.benchmark import run_benchmark
-    from pigp_torch.simulation.lattice import knob_names_for
+    from pigp_torch.ringargs import ring_spec_from_args
 
+    ring = ring_spec_from_args(args)
     df = run_benchmark(
         args.methods,
         _seed_list(args.seeds),
@@ -255,11 +259,13 @@ def cmd_compare(args) -> int:
         budgets={"gp": args.budget_gp, "direct": args.budget_direct},
         n_workers=args.workers,
         progress=True,
-        knobs=args.knobs,
+        ring=ring,
         scheduler=args.scheduler,
         center_ensemble=args.center_ensemble,
     )
-    title = f"spear3-{len(knob_names_for(args.knobs))}, model seed {args.model_seed}"
+    n_knobs = ring.build(args.model_seed).dim  # cached: the model ring was built already
+    name = "spear3" if ring.is_spear3 else Path(ring.lattice).stem
+    title = f"{name}-{n_knobs}, model seed {args.model_seed}"
     _write_comparison(df, args.out, title)
     return 0
 
@@ -306,12 +312,12 @@ def cmd_demo(args) -> int:
         f_inf=model_ring.loss_background,
         noise=0.04,
         knob_names=model_ring.knob_names,
-        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed})"},
+        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed}), knobs in A"},
     )
     print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
           f"{prior.f_x0:.3f} mA/min")  # fmt: skip
     if args.center_ensemble and any(METHODS[m].uses_center_ensemble for m in args.methods):
-        meta = {"error_seed": args.model_seed, "optics": model_ring.optics}
+        meta = {"error_seed": args.model_seed}
         prior = _with_center_ensemble(prior, args.center_ensemble, meta, args.machine_seed)
     print(f"[4/4] {', '.join(args.methods)} on machine error seed {args.machine_seed}, "
           f"{args.budget} evaluations each", flush=True)  # fmt: skip
@@ -423,7 +429,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--knob-limit",
         type=float,
         default=None,
-        help="search the optimum within ±this (1/m) instead of the surrogate's bounds",
+        help="search the optimum within ±this (knob units, e.g. A) instead of the surrogate's "
+        "bounds",
     )
     p.add_argument("--starts", type=int, default=16, help="multi-start count (default 16)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts")
@@ -470,12 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
         "address (tcp://host:8786) or 'local' (a LocalCluster of --workers processes on "
         "127.0.0.1); same numbers as a local run (default: local processes, no Dask)",
     )
-    p.add_argument(
-        "--knobs",
-        default="paper13",
-        choices=["paper13", "powered14", "all72"],
-        help="skew windings used as knobs by the machines and the model ring (default paper13)",
-    )
+    from pigp_torch.ringargs import add_ring_arguments
+
+    add_ring_arguments(p)
     p.add_argument(
         "--center-ensemble",
         type=int,

@@ -7,9 +7,9 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
       kind: sim
       error_seed: 1
       noise: 0.04                 # mA/min
-    knobs:                        # name: [lower, upper], in knob units (K1sL, 1/m, or amperes)
-      01G-QSS4: [-0.015, 0.015]
-      02G-QSS3: [-0.015, 0.015]
+    knobs:                        # name: [lower, upper], in knob units (amperes of the windings)
+      01G-QSS4: [-30, 30]
+      02G-QSS3: [-30, 30]
     objective: {maximize: true}   # epics: {pv: SPEAR:BeamLossRate, maximize: true}
     method: {name: nelder-mead, options: {initial_simplex_size: 0.05}}
     prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match
@@ -93,11 +93,11 @@ class SimMachineConfig(_Section):
     :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise.
 
     The configured knobs are the simulator's skew windings (names like ``01G-QSS4``); their bounds
-    must lie within the simulator's range (±0.015 1/m).
+    must lie within the simulator's range (±30 A).
 
     Attributes:
         error_seed: error seed of the simulated machine.
-        optics: ``"achromat"`` or ``"low_emittance"``.
+        optics: the SPEAR3 deck, ``"user"`` (default), ``"design"`` or ``"low_emittance"``.
         noise: reading noise standard deviation (mA/min).
         seed: seed of the noise stream.
         x_init: knob values the machine starts at (unlisted knobs: 0).
@@ -105,7 +105,7 @@ class SimMachineConfig(_Section):
 
     kind: Literal["sim"]
     error_seed: int = 1
-    optics: Literal["achromat", "low_emittance"] = "achromat"
+    optics: Literal["user", "design", "low_emittance"] = "user"
     noise: float = Field(0.04, ge=0.0)
     seed: int = 0
     x_init: dict[str, float] | None = None

@@ -2,7 +2,7 @@ r"""Simulated-data files: one NPZ per dataset, arrays plus JSON metadata, loaded
 
 Layout (all float64):
 
-* ``x``: ``N x d`` knob settings (integrated skew strengths K1sL, 1/m),
+* ``x``: ``N x d`` knob settings (control units: amps of the skew windings for SPEAR3),
 * ``loss_rate``: ``N`` Touschek loss-rate proxy (mA/min),
 * ``eps_x``, ``eps_y``: ``N`` mode emittances (m rad),
 * ``metadata``: a 0-d unicode array holding a JSON object (error seed, knob names, bounds, units,

@@ -1,6 +1,7 @@
-r"""The "spear3-13" benchmark protocol (DESIGN.md §5): runs methods on simulated machines.
+r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
 
-* Machine ``s``: ``Spear3Coupling(error_seed=s, knobs=knobs)`` read through a
+* Machine ``s``: ``ring.build(s)`` (a :class:`~pigp_torch.simulation.spec.RingSpec`; default the
+  SPEAR3 user-mode ring with the 13 knobs of the study, in amps) read through a
   :class:`~pigp_torch.machine.SimulatedMachine` with i.i.d. :math:`\mathcal N(0, 0.04^2)` noise;
   every run starts at all skews zero.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
@@ -35,9 +36,9 @@ from pigp_torch.benchmark.methods import DEFAULT_BUDGETS, MethodSpec, RunContext
 from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.prior import PhysicsPrior, prior_from_model
-from pigp_torch.simulation import Spear3Coupling
 from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
-from pigp_torch.simulation.lattice import knob_names_for
+from pigp_torch.simulation.ring import RingCoupling
+from pigp_torch.simulation.spec import RingSpec, as_ring_spec
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
@@ -50,23 +51,21 @@ SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_
 _OPTIMA: dict[tuple, float] = {}
 
 
-def _knob_key(knobs):
-    """A hashable form of a knob selection (a set name or a sequence of winding names)."""
-    return knobs if isinstance(knobs, str) else tuple(str(k) for k in knobs)
-
-
 def run_seed(method: str, machine_seed: int) -> int:
     """Stable 31-bit seed of one run from the method name and the machine seed."""
     return zlib.crc32(f"{method}|{int(machine_seed)}".encode()) & 0x7FFFFFFF
 
 
-def machine_optimum(machine_seed: int, n_starts: int = 8, *, knobs="paper13") -> float:
-    """:math:`f^*` of machine ``machine_seed`` with knob set ``knobs`` from ``n_starts`` Sobol
-    starts of L-BFGS-B (:meth:`~pigp_torch.simulation.Spear3Coupling.optimum`); cached per
-    process, ~1 s a start at 13 knobs."""
-    key = (int(machine_seed), int(n_starts), _knob_key(knobs))
+def machine_optimum(
+    machine_seed: int, n_starts: int = 8, *, knobs=None, ring: RingSpec | None = None
+) -> float:
+    """:math:`f^*` of machine ``machine_seed`` of ``ring`` (default SPEAR3; ``knobs`` overrides
+    its knob set) from zero knobs and ``n_starts`` Sobol starts of L-BFGS-B
+    (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per process."""
+    spec = as_ring_spec(ring, knobs=knobs)
+    key = (int(machine_seed), int(n_starts), spec)
     if key not in _OPTIMA:
-        sim = Spear3Coupling(key[0], knobs=knobs)
+        sim = spec.build(key[0])
         _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
     return _OPTIMA[key]
 
@@ -77,12 +76,13 @@ def model_prior(
     noise: float = NOISE,
     n_starts: int = 16,
     seed: int = 0,
-    knobs="paper13",
+    knobs=None,
     center_ensemble: int = 0,
     progress: bool = False,
+    ring: RingSpec | None = None,
 ) -> PhysicsPrior:
-    """The physics prior from the model ring ``Spear3Coupling(model_seed, knobs=knobs)``
-    (~3 s at 13 knobs).
+    """The physics prior from the model ring ``ring.build(model_seed)`` (default SPEAR3;
+    ``knobs`` overrides its knob set).
 
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
     optimum, and ``peak_shape``, the mean shape of the peak, over ``n`` more model rings with
@@ -90,11 +90,12 @@ def model_prior(
     (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, ~3-7 s a ring; ``progress``
     prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
     """
-    sim = Spear3Coupling(int(model_seed), knobs=knobs)
-    provenance = {"model": f"Spear3Coupling(error_seed={int(model_seed)})"}
+    spec = as_ring_spec(ring, knobs=knobs)
+    sim = spec.build(int(model_seed))
+    provenance = {"model": spec.describe(model_seed), "ring": spec.to_dict()}
     fields = {}
     if int(center_ensemble) > 0:
-        optima = ensemble_optima(ensemble_seeds(int(center_ensemble)), knobs=knobs,
+        optima = ensemble_optima(ensemble_seeds(int(center_ensemble)), model=sim,
                                  progress=progress)  # fmt: skip
         fields = optima.prior_fields()
         provenance["center_ensemble_seeds"] = optima.seed_range
@@ -111,7 +112,7 @@ def model_prior(
     return dataclasses.replace(prior, **fields) if fields else prior
 
 
-def score_run(table: pd.DataFrame, sim: Spear3Coupling, f_star: float) -> pd.DataFrame:
+def score_run(table: pd.DataFrame, sim: RingCoupling, f_star: float) -> pd.DataFrame:
     r"""Add ``f_true``, ``best_f_true``, ``f0``, ``f_star``, ``gain_fraction`` to one run's table.
 
     ``f_true`` is the noise-free loss rate at the logged knobs (rows in step order),
@@ -139,7 +140,8 @@ def run_one(
     noise: float = NOISE,
     archive_size: int = 300,
     optimum_starts: int = 8,
-    knobs="paper13",
+    knobs=None,
+    ring: RingSpec | None = None,
 ) -> pd.DataFrame:
     """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
 
@@ -149,14 +151,15 @@ def run_one(
     the same run gave different proposals in a process that had imported Xopt.
 
     Raises:
-        ValueError: ``prior`` is for other knobs than ``knobs`` (names must match in order).
+        ValueError: ``prior`` is for other knobs than ``ring``'s (names must match in order).
     """
+    spec_ring = as_ring_spec(ring, knobs=knobs)
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
-        sim = Spear3Coupling(int(machine_seed), knobs=knobs)
+        sim = spec_ring.build(int(machine_seed))
         if list(prior.knob_names) != list(sim.knob_names):
             raise ValueError(
                 f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
-                f"{sim.dim} knobs {sim.knob_names[:3]}... (knobs={knobs!r}): compute the prior "
+                f"{sim.dim} knobs {sim.knob_names[:3]}...: compute the prior "
                 "from a model ring with the same knobs"
             )
         machine = SimulatedMachine(sim, noise=noise, seed=int(machine_seed))
@@ -173,7 +176,8 @@ def run_one(
         table.insert(1, "machine_seed", int(machine_seed))
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
             return score_run(table, sim, float("nan"))
-        return score_run(table, sim, machine_optimum(machine_seed, optimum_starts, knobs=knobs))
+        f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring)
+        return score_run(table, sim, f_star)
 
 
 def _advance(bar, label: str) -> None:
@@ -199,9 +203,10 @@ def run_benchmark(
     n_workers: int = 1,
     prior: PhysicsPrior | None = None,
     optimum_starts: int = 8,
-    knobs="paper13",
+    knobs=None,
     scheduler: str | None = None,
     center_ensemble: int = ENSEMBLE_SIZE,
+    ring: RingSpec | None = None,
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
@@ -227,7 +232,10 @@ def run_benchmark(
             ``f_star`` and ``gain_fraction`` are NaN (score by ``best_f_true``; for knob sets
             where the search is too slow or unreliable, e.g. 72 knobs).
         knobs: knob set of the machines and the model ring (``"paper13"``, ``"powered14"``,
-            ``"all72"`` or winding names, see :class:`~pigp_torch.simulation.Spear3Coupling`).
+            ``"all72"`` or winding names, see :class:`~pigp_torch.simulation.Spear3Coupling`);
+            overrides ``ring``'s.
+        ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
+            SPEAR3 user-mode ring, 13 knobs in amps).
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
             scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
             127.0.0.1): one Dask task per run (:func:`~pigp_torch.benchmark.distributed.
@@ -246,6 +254,7 @@ def run_benchmark(
         ConnectionError: the Dask scheduler cannot be reached (or has no workers) in time.
     """
     specs = resolve_methods(methods)
+    ring = as_ring_spec(ring, knobs=knobs)
     seeds = [int(s) for s in machine_seeds]
     if not seeds:
         raise ValueError("no machine seeds given")
@@ -288,14 +297,14 @@ def run_benchmark(
             print(f"prior: model ring {model_seed} + optima of {center_ensemble} ensemble rings",
                   flush=True)  # fmt: skip
         prior = model_prior(
-            model_seed, noise=noise, knobs=knobs, center_ensemble=center_ensemble,
+            model_seed, noise=noise, ring=ring, center_ensemble=center_ensemble,
             progress=progress,
         )  # fmt: skip
-    names = knob_names_for(knobs)
+    names = ring.build(seeds[0]).knob_names
     if list(prior.knob_names) != names:
         raise ValueError(
             f"the prior is for {prior.dim} knobs, the machines have {len(names)} "
-            f"(knobs={knobs!r}): compute the prior from a model ring with the same knobs"
+            f"({ring.describe()}): compute the prior from a model ring with the same knobs"
         )
 
     jobs = [
@@ -308,7 +317,7 @@ def run_benchmark(
                 "noise": float(noise),
                 "archive_size": int(archive_size),
                 "optimum_starts": int(optimum_starts),
-                "knobs": knobs,
+                "ring": ring,
             },
         )
         for spec in specs

@@ -1,7 +1,7 @@
 r"""EPICS Channel Access tools: a simulated ring served as an IOC, for tests and demos.
 
 * :mod:`pigp_torch.epics.ioc` — a caproto IOC (``caproto.server``) that serves a
-  :class:`~pigp_torch.simulation.Spear3Coupling` ring with noise: per knob a setpoint PV
+  simulated ring (SPEAR3 by default, knobs in amps) with noise: per knob a setpoint PV
   ``<knob>:CurrSetpt`` and a readback ``<knob>:Curr1``, the loss rate ``<prefix>BeamLossRate``
   and fault-injection switches; :func:`~pigp_torch.epics.ioc.start_sim_ioc` launches it in a
   subprocess on the loopback interface for tests and demos.
@@ -32,14 +32,9 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument(
         "--seed", type=int, default=1, help="error seed of the simulated ring (default 1)"
     )
-    p.add_argument(
-        "--knobs",
-        default="paper13",
-        help="paper13 (default), powered14, all72, or a comma-separated list of windings",
-    )
-    p.add_argument(
-        "--optics", default="achromat", choices=["achromat", "low_emittance"], help="ring optics"
-    )
+    from pigp_torch.ringargs import add_ring_arguments
+
+    add_ring_arguments(p)
     p.add_argument(
         "--noise",
         type=float,

@@ -1,4 +1,4 @@
-r"""A simulated SPEAR3-like ring served over EPICS Channel Access (a caproto IOC).
+r"""A simulated ring (SPEAR3 by default) served over EPICS Channel Access (a caproto IOC).
 
 The IOC makes the EPICS path testable end to end without a control room: the same
 :class:`~pigp_torch.machine.epics.EpicsMachine` that would talk to SPEAR3 talks to this server over
@@ -9,7 +9,7 @@ PVs served (``K`` knobs, prefix ``P``, default ``"SPEAR:"``):
 ========================  ==========  ========================================================
 PV                        access      meaning
 ========================  ==========  ========================================================
-``<knob>:CurrSetpt``      read/write  knob setpoint (integrated skew strength K1sL, 1/m); puts
+``<knob>:CurrSetpt``      read/write  knob setpoint (winding current, A, by default); puts
                                       outside the knob bounds are refused (control limits)
 ``<knob>:Curr1``          read only   readback: follows the setpoint after ``ReadbackDelay``
 ``P BeamLossRate``        read only   loss rate at the *readbacks* + Gaussian noise (mA/min),
@@ -20,14 +20,14 @@ PV                        access      meaning
 ========================  ==========  ========================================================
 
 The physics is :class:`~pigp_torch.machine.SimulatedMachine` around a
-:class:`~pigp_torch.simulation.Spear3Coupling` ring: at every refresh the machine is set to the
+:class:`~pigp_torch.simulation.RingCoupling` ring: at every refresh the machine is set to the
 readbacks and one noisy reading :math:`y = f(x_\mathrm{rb}) + \epsilon`,
 :math:`\epsilon \sim \mathcal N(0, \sigma_n^2)` (seeded, default :math:`\sigma_n` = 0.04 mA/min),
 is published. Between refreshes a read returns the last published value, as on a real monitor
 PV; a client that averages readings should space them by at least ``update_period``.
 
-Knob values are served in the simulator's units (K1sL, 1/m); converting to magnet currents is
-a calibration of the real machine and out of scope here.
+Knob values are served in the simulator's control units (amps of the SPEAR3 skew windings; the
+``EGU`` field of each knob PV says so), as on the real machine.
 
 Safety: the server binds to 127.0.0.1 only (``EPICS_CAS_INTF_ADDR_LIST``) and sends its beacons
 to 127.0.0.1 only. :func:`start_sim_ioc` runs it in a subprocess on a free port for tests and
@@ -184,6 +184,7 @@ def sim_ioc_class(
     x_init=None,
     readback_delay: float = 0.0,
     nan_readings: int = 0,
+    units: str = "A",
 ) -> type[SimRingIOC]:
     r"""A :class:`SimRingIOC` subclass with the PVs of ``knob_names`` (see the module table).
 
@@ -200,6 +201,7 @@ def sim_ioc_class(
         x_init: ``K`` initial setpoints and readbacks (default zeros: skews off).
         readback_delay: initial value of the ``Sim:ReadbackDelay`` switch (s, >= 0).
         nan_readings: initial value of the ``Sim:NanReadings`` switch (>= 0).
+        units: engineering units of the knob PVs (default ``"A"``).
     """
     names = [str(n) for n in knob_names]
     bounds = check_bounds(bounds)
@@ -223,8 +225,8 @@ def sim_ioc_class(
             lower_ctrl_limit=lo,
             upper_ctrl_limit=hi,
             precision=6,
-            units="1/m",
-            doc=f"setpoint of {name} (K1sL, 1/m), limits [{lo}, {hi}]",
+            units=units,
+            doc=f"setpoint of {name} ({units}), limits [{lo}, {hi}]",
         )
 
         async def put(group, instance, value, _i=i):
@@ -238,8 +240,8 @@ def sim_ioc_class(
             dtype=ChannelType.DOUBLE,
             read_only=True,
             precision=6,
-            units="1/m",
-            doc=f"readback of {name} (K1sL, 1/m)",
+            units=units,
+            doc=f"readback of {name} ({units})",
         )
 
     loss_rate = pvproperty(
@@ -284,8 +286,8 @@ def sim_ioc_class(
 def make_sim_ioc(
     seed: int = 1,
     *,
-    knobs="paper13",
-    optics: str = "achromat",
+    knobs=None,
+    ring=None,
     noise: float = 0.04,
     noise_seed: int = 0,
     prefix: str = DEFAULT_PREFIX,
@@ -294,25 +296,30 @@ def make_sim_ioc(
     nan_readings: int = 0,
     x_init=None,
 ) -> SimRingIOC:
-    """The IOC of ring ``Spear3Coupling(seed, knobs=knobs, optics=optics)`` (not yet serving).
+    """The IOC of machine ``ring.build(seed)`` (not yet serving).
 
     Args:
         seed: error seed of the simulated ring.
-        knobs, optics: as in :class:`~pigp_torch.simulation.Spear3Coupling`.
+        knobs: knob set or names (overrides ``ring``'s).
+        ring: a :class:`~pigp_torch.simulation.spec.RingSpec` (default: SPEAR3, 13 knobs, A).
         noise: loss-rate noise standard deviation (mA/min); ``noise_seed`` seeds it.
         prefix: prefix of the loss-rate and switch PVs.
         update_period: see :class:`SimRingIOC`.
         readback_delay, nan_readings, x_init: see :func:`sim_ioc_class`.
     """
     from pigp_torch.machine import SimulatedMachine
-    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import as_ring_spec
 
     # cheap checks before the ring is built (seconds)
     if not (0.0 <= float(noise) < math.inf):
         raise ValueError(f"noise must be finite and >= 0, got {noise}")
     if not (0.0 < float(update_period) < math.inf):
         raise ValueError(f"update_period must be positive and finite, got {update_period}")
-    sim = Spear3Coupling(int(seed), knobs=knobs, optics=optics)
+    if isinstance(knobs, str) and "," in knobs:
+        knobs = tuple(knobs.split(","))
+    elif knobs is not None and not isinstance(knobs, str):
+        knobs = tuple(knobs)
+    sim = as_ring_spec(ring, knobs=knobs).build(int(seed))
     machine = SimulatedMachine(sim, noise=noise, seed=noise_seed)
     cls = sim_ioc_class(
         sim.knob_names,
@@ -321,6 +328,7 @@ def make_sim_ioc(
         x_init=x_init,
         readback_delay=readback_delay,
         nan_readings=nan_readings,
+        units=sim.knob_units,
     )
     return cls(prefix="", machine=machine, update_period=update_period)
 
@@ -420,10 +428,11 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
 
 def sim_ioc_from_args(args):
     """The IOC described by the options of :func:`pigp_torch.epics.add_ioc_arguments`."""
+    from pigp_torch.ringargs import ring_spec_from_args
+
     return make_sim_ioc(
         args.seed,
-        knobs=args.knobs.split(",") if "," in args.knobs else args.knobs,
-        optics=args.optics,
+        ring=ring_spec_from_args(args),
         noise=args.noise,
         noise_seed=args.noise_seed,
         prefix=args.prefix,
@@ -584,7 +593,7 @@ def start_sim_ioc(
         RuntimeError: the IOC exited during start-up (its log is in the message).
         TimeoutError: it did not answer within ``startup_timeout``.
     """
-    from pigp_torch.simulation.lattice import knob_names_for
+    from pigp_torch.simulation.spear3 import knob_names_for
 
     names = knob_names_for(knobs)
     port = free_port() if port is None else int(port)

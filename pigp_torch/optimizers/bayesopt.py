@@ -40,8 +40,7 @@ class _BoxAcquisition(AcquisitionFunction):
 
     .. math:: \tilde a(u) = a(\ell + u \odot (h - \ell)), \qquad u \in [0, 1]^d
 
-    Optimizing over the unit cube keeps L-BFGS-B well conditioned whatever the knob units
-    (skew strengths are ~1e-2 1/m, a trust box ~1e-3).
+    Optimizing over the unit cube keeps L-BFGS-B well conditioned whatever the knob units.
     """
 
     def __init__(self, acq: AcquisitionFunction, lower: torch.Tensor, upper: torch.Tensor):

@@ -77,7 +77,7 @@ class PhysicsPrior:
     :math:`\mathbf x_0`.
 
     Attributes:
-        x0: ``d`` knob setting of the model optimum (knob units, e.g. K1sL in 1/m).
+        x0: ``d`` knob setting of the model optimum (knob units, e.g. amps of the skew windings).
         f_x0: objective value :math:`f(\mathbf x_0)` of the model.
         f_inf: background level :math:`f_\infty` (prior mean); must be below ``f_x0``.
         precision: ``d x d`` symmetric positive-definite :math:`\Sigma` (1 / knob²). A

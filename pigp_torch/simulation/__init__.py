@@ -1,20 +1,25 @@
-"""SPEAR3-like coupling simulation: ring builder, seeded errors, fast batched model, pyAT reference.
+"""Storage-ring coupling simulation: lattice decks, seeded errors, fast batched model, pyAT path.
 
-The only layer that imports pyAT. Main entry point: :class:`Spear3Coupling`.
+The only layer that imports pyAT. Entry points: :class:`RingCoupling` (any ring and knobs) and
+its SPEAR3 instance :class:`Spear3Coupling` (the real deck, knobs in amps).
 """
 
-from pigp_torch.simulation.spear3 import (
-    LOSS_RATE_MAP,
+from pigp_torch.simulation.ring import (
     TARGET_RATIO,
     CouplingResult,
-    Spear3Coupling,
+    RingCoupling,
     calibrate_loss_rate_map,
+    load_ring,
 )
+from pigp_torch.simulation.spear3 import LOSS_RATE_MAP, SKEW_K_PER_A_M2, Spear3Coupling
 
 __all__ = [
     "LOSS_RATE_MAP",
+    "SKEW_K_PER_A_M2",
     "TARGET_RATIO",
     "CouplingResult",
+    "RingCoupling",
     "Spear3Coupling",
     "calibrate_loss_rate_map",
+    "load_ring",
 ]

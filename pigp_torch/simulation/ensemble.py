@@ -1,17 +1,16 @@
 r"""Where the optimum of a machine lies, over an ensemble of error seeds of the model ring.
 
-A machine's coupling errors are random with known rms (DESIGN.md §2), so the knob setting that
-decouples it is random too. Its distribution is a property of the lattice and the error model, not
-of any one machine: the optics decide which resonance driving terms the errors excite and how the
-knobs cancel them. Measured on 40 model rings (error seeds 144-183, 13 paper knobs): in the
-coordinates whitened by the prior's Hessian, 90 % of the variance of the optimum lies in 3 of the
-13 directions, and the optima of the 12 benchmark machines sit at a Mahalanobis distance² / 13 of
-0.2-1.7 in the ensemble's covariance, i.e. they are typical members.
+A machine's coupling errors are random with known rms, so the knob setting that decouples it is
+random too. Its distribution is a property of the lattice and the error model, not of any one
+machine: the optics decide which resonance driving terms the errors excite and how the knobs
+cancel them.
 
-:func:`ensemble_optima` computes the optima and the peak's shape at each; :func:`center_covariance`
-the optima's second moment about the nominal setting (zero knobs: the error model is symmetric, so
-the mean is zero up to sampling noise) and :func:`mean_shape` the mean shape. They are the
-``center_cov`` and ``peak_shape`` of a :class:`~pigp_torch.prior.PhysicsPrior`.
+:func:`ensemble_optima` computes the optima and the peak's shape at each, for any
+:class:`~pigp_torch.simulation.ring.RingCoupling` (its lattice, knobs and calibration with other
+error seeds); :func:`center_covariance` the optima's second moment about the nominal setting
+(zero knobs: the error model is symmetric, so the mean is zero up to sampling noise) and
+:func:`mean_shape` the mean shape. They are the ``center_cov`` and ``peak_shape`` of a
+:class:`~pigp_torch.prior.PhysicsPrior`.
 """
 
 from __future__ import annotations
@@ -23,7 +22,15 @@ import torch
 
 from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE
+from pigp_torch.simulation.ring import RingCoupling
 from pigp_torch.simulation.spear3 import Spear3Coupling
+
+#: box growth factors of the optimum search (times the knob box), up to ``reach``
+GROWTH = (1.0, 2.0, 4.0, 8.0)
+#: an optimum counts as on the search box's face beyond this fraction of the box
+FACE = 0.999
+#: largest accepted Newton step of g = (f - f_inf)^-2 at an optimum, in units of the knob box
+STATIONARY_TOL = 1e-3
 
 #: First error seed of the default ensemble; far from the benchmark's machine seeds 1...N.
 ENSEMBLE_SEED0 = 1001
@@ -45,6 +52,8 @@ class EnsembleOptima(NamedTuple):
     centers: torch.Tensor
     #: ``n x d x d`` peak shapes :math:`B_i` at the optima (:func:`peak_shape_at`)
     shapes: torch.Tensor
+    #: ``(seed, reason)`` of every ring that could not be used
+    failed: tuple = ()
 
     def prior_fields(self) -> dict:
         """``center_cov`` and ``peak_shape`` of a :class:`~pigp_torch.prior.PhysicsPrior`
@@ -60,99 +69,152 @@ class EnsembleOptima(NamedTuple):
         return [self.seeds[0], self.seeds[-1], len(self.seeds)]
 
 
-def peak_shape_at(sim: Spear3Coupling, x: torch.Tensor) -> torch.Tensor:
+def peak_shape_at(sim: RingCoupling, x: torch.Tensor) -> torch.Tensor:
     r"""Shape :math:`B = \tfrac12 \nabla^2 g` of :math:`g = (f - f_\infty)^{-2}` at ``x``.
 
     At a peak of the loss rate :math:`f` of ``sim``, :math:`g` is a quadratic bowl
     :math:`c + (\mathbf x - \boldsymbol\mu)^\top B (\mathbf x - \boldsymbol\mu)` to second order;
     this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units).
     """
+    H, _ = _g_derivatives(sim, x)
+    return H / 2
+
+
+def _g_derivatives(sim: RingCoupling, x: torch.Tensor):
+    """Hessian and gradient of g = (f - f_inf)^-2 at ``x`` (autograd)."""
     # Not prior.log_excess_hessian: that is log(f - f_inf), whose Hessian gives B only at an exact
     # stationary point (-H c there); g's Hessian is B wherever g is quadratic, and simulation/
-    # does not import from prior/ (same layer, DESIGN.md §3).
+    # does not import from prior/ (same layer).
     f_inf = float(sim.loss_background)
 
     def g(z: torch.Tensor) -> torch.Tensor:
         return (sim.loss_rate(z.unsqueeze(0)).reshape(()) - f_inf) ** -2
 
-    H = torch.autograd.functional.hessian(g, torch.as_tensor(x, dtype=DTYPE).detach())
-    return (H + H.T) / 4
+    x = torch.as_tensor(x, dtype=DTYPE).detach()
+    H = torch.autograd.functional.hessian(g, x)
+    G = torch.autograd.functional.jacobian(g, x)
+    return (H + H.T) / 2, G
+
+
+def unconstrained_optimum(sim: RingCoupling, reach: float = 4.0):
+    r"""The loss-rate maximum of ``sim`` without the knob limit, and its peak shape.
+
+    The search grows its box step by step (:data:`GROWTH` × the knob box, up to ``reach``):
+    L-BFGS-B from zero knobs in the knob box, then, while the optimum sits on the search box's
+    face, again from that optimum in the next larger box. So the search stays in the stable
+    region around the working point instead of starting where the beam may be unstable. It is
+    checked to be a maximum: finite, above the knobs-off value, a positive-definite shape
+    :math:`B` (:func:`peak_shape_at`) and a Newton step :math:`\lVert B^{-1}\nabla g\rVert/2`
+    below :data:`STATIONARY_TOL` of the knob box.
+
+    Returns:
+        ``(x, f, B)``: ``d`` optimum (knob units), its loss rate, ``d x d`` shape.
+
+    Raises:
+        ValueError: the search did not end on a maximum (the message says why).
+    """
+    zero = torch.zeros(1, sim.dim, dtype=DTYPE)
+    f0 = float(sim.loss_rate(zero)[0])
+    if not torch.isfinite(torch.tensor(f0)):
+        raise ValueError("no stable beam with the knobs at zero")
+    steps = [g for g in GROWTH if g < float(reach)] + [float(reach)]
+    x, f = zero[0], f0
+    for g in steps:
+        box = sim.bounds * g
+        x, f = find_optimum(sim.loss_rate, box, n_starts=0, x_init=x.unsqueeze(0))
+        if not bool((x.abs() >= FACE * box[1]).any()):
+            break
+    else:
+        raise ValueError(f"the optimum lies beyond {reach:g} x the knob box (on its face)")
+    if not f > f0:
+        raise ValueError(f"the search did not rise above the knobs-off loss rate ({f:.4g} mA/min)")
+    H, G = _g_derivatives(sim, x)
+    B = H / 2
+    evals = torch.linalg.eigvalsh(B)
+    if not evals.min() > 0:
+        raise ValueError(
+            f"the shape at the optimum is not positive definite (min eig {evals.min():.3g})"
+        )
+    step = torch.linalg.solve(B, G) / 2
+    rel = float((step.abs() / sim.bounds[1]).max())
+    if rel > STATIONARY_TOL:
+        raise ValueError(f"not stationary: the Newton step is {rel:.3g} of the knob box")
+    return x, f, B
 
 
 def ensemble_optima(
     seeds,
     *,
+    model: RingCoupling | None = None,
     knobs="paper13",
-    optics: str = "achromat",
+    optics: str = "user",
     reach: float = 4.0,
     progress: bool = False,
 ) -> EnsembleOptima:
-    r"""Optimum of the loss rate of ``Spear3Coupling(s)`` for each seed, without the knob limit,
-    and the peak's shape there.
+    r"""Unconstrained optimum of the loss rate and the peak's shape there, for each error seed.
 
-    The search (L-BFGS-B from zero knobs, ~2-6 s a ring at 13 knobs) runs in ``reach`` times the
-    knob box, so an optimum just outside the box is found where it is, not on the boundary: it is
-    the centre :math:`\boldsymbol\mu` of the physics form that
-    :class:`~pigp_torch.models.InverseSqrtPeakModel` fits, and :func:`peak_shape_at` there its
-    shape :math:`B` (one autograd Hessian, ~0.4 s).
+    The optimum is the centre :math:`\boldsymbol\mu` of the physics form that
+    :class:`~pigp_torch.models.InverseSqrtPeakModel` fits, and its shape :math:`B`; both come
+    from :func:`unconstrained_optimum` (a growing search box, each result checked to be a
+    maximum; ~2-6 s a ring at 13 knobs).
 
     Args:
         seeds: error seeds of the model rings.
-        knobs, optics: as :class:`~pigp_torch.simulation.Spear3Coupling`.
-        reach: search box = ``reach`` x the knob box (>= 1).
+        model: the ring (any :class:`~pigp_torch.simulation.ring.RingCoupling`); ring ``s`` is
+            ``model.with_seed(s)``. Default: ``Spear3Coupling(knobs=knobs, optics=optics)``.
+        knobs, optics: of the default SPEAR3 model.
+        reach: largest search box, in units of the knob box (>= 1).
         progress: print one line per ring.
 
     Returns:
-        :class:`EnsembleOptima` of the rings that could be built. A seed is skipped with a
-        warning when its error-scale calibration fails (the ring does not exist) or when the
-        shape at its optimum is not positive definite (the search stopped off a peak).
+        :class:`EnsembleOptima` of the rings that could be used; ``failed`` lists the others
+        with the reason (error-scale calibration failed, no maximum found). A warning names them.
 
     Raises:
-        ValueError: no seeds, ``reach < 1``, or no ring could be used.
+        ValueError: no seeds, ``reach < 1``, or no ring could be used (the reasons are listed).
     """
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds given")
     if not float(reach) >= 1.0:
         raise ValueError(f"reach must be >= 1, got {reach}")
-    used, rows, shapes = [], [], []
+    used, rows, shapes, failed = [], [], [], []
     for k, s in enumerate(seeds):
         try:
-            sim = Spear3Coupling(s, knobs=knobs, optics=optics)
-        except RuntimeError as err:  # calibration failure: this ring does not exist
-            warnings.warn(f"ensemble seed {s} skipped: {err}", stacklevel=2)
-            continue
-        x, f = find_optimum(
-            sim.loss_rate,
-            sim.bounds * float(reach),
-            n_starts=0,
-            x_init=torch.zeros(1, sim.dim, dtype=DTYPE),
-        )
-        B = peak_shape_at(sim, x)
-        if not torch.linalg.eigvalsh(B).min() > 0:
-            warnings.warn(f"ensemble seed {s} skipped: the search stopped off a peak "
-                          "(shape not positive definite)", stacklevel=2)  # fmt: skip
+            if model is None:
+                sim = Spear3Coupling(s, knobs=knobs, optics=optics)
+            else:
+                sim = model.with_seed(s)
+            x, f, B = unconstrained_optimum(sim, reach)
+        except (RuntimeError, ValueError) as err:
+            failed.append((s, str(err)))
+            if progress:
+                print(
+                    f"  ensemble ring {k + 1}/{len(seeds)} (seed {s}): skipped: {err}", flush=True
+                )
             continue
         used.append(s)
         rows.append(x)
         shapes.append(B)
         if progress:
             print(f"  ensemble ring {k + 1}/{len(seeds)} (seed {s}): optimum {f:.3f} mA/min, "
-                  f"max |knob| {float(x.abs().max()) / sim.knob_limit:.2f} of the limit",
+                  f"max |knob| {float((x.abs() / sim.bounds[1]).max()):.2f} of the limit",
                   flush=True)  # fmt: skip
+    if failed:
+        lines = "; ".join(f"seed {s}: {why}" for s, why in failed)
+        warnings.warn(
+            f"{len(failed)} of {len(seeds)} ensemble rings skipped: {lines}", stacklevel=2
+        )
     if not rows:
-        raise ValueError(f"no ring of seeds {seeds} could be used")
-    return EnsembleOptima(used, torch.stack(rows), torch.stack(shapes))
+        raise ValueError(f"no ring of seeds {seeds} could be used: {failed}")
+    return EnsembleOptima(used, torch.stack(rows), torch.stack(shapes), tuple(failed))
 
 
 def mean_shape(shapes: torch.Tensor) -> torch.Tensor:
     r""":math:`\bar B = \frac1n \sum_i B_i`: the mean of ``n x d x d`` peak shapes (symmetrized).
 
-    The shape is a property of the optics that the errors perturb by 5-30 % per direction; the
-    mean over rings is a better estimate for an unseen machine than any one ring's. Measured on
-    the 12-seed spear3-13 benchmark (``pigp-physics``, 100 evaluations, 40 rings): 7 machines
-    reached 95 % of the gain, median steps-to-95 % 72, median gain after 40 evaluations 0.92;
-    with the model ring's own shape 7, 85.5 and 0.88 (and 4 against 7 within 60 evaluations).
+    The shape is a property of the optics that the errors perturb; the mean over rings is a
+    better estimate for an unseen machine than any one ring's.
     """
     shapes = torch.as_tensor(shapes, dtype=DTYPE)
     if shapes.ndim != 3 or shapes.shape[0] < 1 or shapes.shape[1] != shapes.shape[2]:

@@ -83,7 +83,8 @@ def generate_dataset(
     progress: bool = True,
     **design,
 ) -> Dataset:
-    """Sample ``sim`` (a ``Spear3Coupling``) with :func:`sampling_design` into a dataset.
+    """Sample ``sim`` (a :class:`~pigp_torch.simulation.RingCoupling`) with
+    :func:`sampling_design` into a dataset.
 
     Settings without a stable beam are dropped (their count is in the metadata).
     """
@@ -101,17 +102,20 @@ def generate_dataset(
     keep = out.pop("stable")
     metadata = {
         "error_seed": sim.error_seed,
-        "optics": sim.optics,
+        "optics": getattr(sim, "optics", None),
+        "ring": None if getattr(sim, "spec", None) is None else sim.spec.to_dict(),
+        "ring_name": sim.name,
         "knob_names": list(sim.knob_names),
         "bounds": sim.bounds.tolist(),
         "units": {
-            "x": "1/m (integrated skew strength K1sL)",
+            "x": f"{sim.knob_units} (knob setting; K1s·L = calibration x setting)",
             "loss_rate": "mA/min",
             "eps_x": "m rad",
             "eps_y": "m rad",
         },
         "f_inf": sim.loss_background,
         "error_scale": sim.error_scale,
+        "knob_calibration_per_unit": sim.knob_calibration.tolist(),
         "model_optimum": {"x": x_star.tolist(), "loss_rate": f_star},
         "design": {
             "seed": seed,

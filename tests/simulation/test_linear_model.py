@@ -182,8 +182,10 @@ def sim():
 
 
 def settings(sim, n, seed):
+    """``n`` random settings in the knob box, as the segment model takes them (K1s·L, 1/m)."""
     g = torch.Generator().manual_seed(seed)
-    return (2 * torch.rand(n, sim.dim, generator=g, dtype=torch.float64) - 1) * sim.bounds[1]
+    amps = (2 * torch.rand(n, sim.dim, generator=g, dtype=torch.float64) - 1) * sim.bounds[1]
+    return sim.k1sl(amps)
 
 
 def ring_beam_matrices(sim, n, seed):
