@@ -65,7 +65,42 @@ def find_optimum(
         starts.append(((xi - lo) / width).clamp(0.0, 1.0))
     if not starts:
         raise ValueError("no starting point: give n_starts > 0 or x_init")
-    Z0 = torch.cat(starts)
+    X, y = maximize_from(f, b, torch.cat(starts), maxiter=maxiter)
+    if not torch.isfinite(y).any():
+        raise ValueError("f was not finite at any starting point")
+    i = int(y.argmax())
+    return X[i], float(y[i])
+
+
+def maximize_from(
+    f: Callable[[Tensor], Tensor], bounds, Z0: Tensor, maxiter: int = 2000
+) -> tuple[Tensor, Tensor]:
+    r"""Run the batched L-BFGS-B of :func:`find_optimum` from given starts; return every end point.
+
+    Each row of ``Z0`` is one start in unit-cube coordinates :math:`\mathbf z \in [0, 1]^d`
+    (:math:`\mathbf x = \mathbf l + (\mathbf u - \mathbf l) \odot \mathbf z`). ``f`` is always
+    called with all ``k`` rows in the order of ``Z0``, so it may treat row ``i`` as start ``i``
+    (e.g. maximize a different monotone transform of the objective per start).
+
+    Args:
+        f: differentiable callable mapping ``k x d`` float64 knob settings to ``k`` values.
+        bounds: ``2 x d`` lower / upper limits.
+        Z0: ``k x d`` starts in the unit cube (``k >= 1``).
+        maxiter: L-BFGS-B iteration limit.
+
+    Returns:
+        ``(X, y)``: ``k x d`` end points (knob units) and their ``k`` values of ``f``
+        (``-inf`` where not finite).
+
+    Raises:
+        ValueError: bad bounds or ``Z0``, or ``f`` not returning one value per row.
+    """
+    b = check_bounds(bounds)
+    d = b.shape[1]
+    lo, width = b[0], b[1] - b[0]
+    if Z0.dim() != 2 or Z0.shape[1] != d or Z0.shape[0] == 0:
+        raise ValueError(f"Z0 must have shape (k, {d}) with k >= 1, got {tuple(Z0.shape)}")
+    Z0 = Z0.detach().to(DTYPE).contiguous()
     k = Z0.shape[0]
 
     def evaluate(z: Tensor) -> Tensor:
@@ -94,8 +129,5 @@ def find_optimum(
     Z = torch.from_numpy(res.x.reshape(k, d)).to(DTYPE)
     with torch.no_grad():
         y = evaluate(Z)
-    if not torch.isfinite(y).any():
-        raise ValueError("f was not finite at any starting point")
     y = torch.where(torch.isfinite(y), y, torch.full_like(y, -torch.inf))
-    i = int(y.argmax())
-    return lo + width * Z[i], float(y[i])
+    return lo + width * Z, y

@@ -10,13 +10,26 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from pigp_torch._multistart import find_optimum
-from pigp_torch._utils import as_knob_tensor, check_bounds
+from pigp_torch._multistart import maximize_from
+from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch.prior.hessian import log_excess_hessian, repair_negative_definite
 from pigp_torch.prior.physics_prior import PhysicsPrior
 
 #: Newton-step size (in correlation lengths) above which x0 is reported as not stationary.
 GRADIENT_WARN_TOL = 1e-3
+#: Newton step (correlation lengths) in the free knobs above which a searched x0 is rejected.
+NEWTON_STEP_MAX = 0.1
+#: A searched x0 must reach this fraction of the best sampled excess f - f_inf.
+MIN_EXCESS_FRACTION = 0.5
+#: Excess f(x0) - f_inf at or below this fraction of max(|f_inf|, |f(x0)|) is the background.
+BACKGROUND_REL_TOL = 1e-8
+#: Largest eigenvalue of the free knobs' Hessian, relative to the largest |eigenvalue|,
+#: tolerated at a searched x0 (the repair clips it; above this x0 is a saddle, not a maximum).
+POSITIVE_CURVATURE_TOL = 1e-2
+#: A knob within this fraction of its range from a limit is on the bound.
+ON_BOUND_TOL = 1e-9
+#: Rows of f evaluated at once while sampling.
+SAMPLE_CHUNK = 1024
 
 
 def prior_from_model(
@@ -28,6 +41,9 @@ def prior_from_model(
     x0=None,
     n_starts: int = 16,
     seed: int = 0,
+    n_samples: int = 4096,
+    n_sample_starts: int = 8,
+    x_init=None,
     amplitude: float | None = None,
     knob_names: Sequence[str] | None = None,
     provenance: dict[str, Any] | None = None,
@@ -35,19 +51,57 @@ def prior_from_model(
 ) -> PhysicsPrior:
     r"""Compute the physics prior of a PI-GP from a differentiable model ``f`` of the objective.
 
-    1. :math:`\mathbf x_0`: the maximum of ``f`` in ``bounds`` (:func:`find_optimum`) unless given.
-    2. :math:`G, H`: gradient and Hessian of :math:`\log(f - f_\infty)` at :math:`\mathbf x_0`
-       by autograd (:func:`log_excess_hessian`).
+    With the excess :math:`e(\mathbf x) = f(\mathbf x) - f_\infty` over the background and
+    :math:`g = \log e`:
+
+    1. :math:`\mathbf x_0 = \arg\max_{\mathbf l \le \mathbf x \le \mathbf u} f(\mathbf x)`,
+       unless ``x0`` is given (see *Search* below).
+    2. :math:`G = \nabla g(\mathbf x_0)`, :math:`H = \nabla^2 g(\mathbf x_0)` by autograd
+       (:func:`log_excess_hessian`).
     3. :math:`H` is made negative definite (:func:`repair_negative_definite`, warns if changed).
     4. Precision :math:`\Sigma = -H/2`; amplitude
-       :math:`\sigma_f^2 = (f(\mathbf x_0) - f_\infty)^2 / 12` (variance of a uniform
-       distribution spanning the objective's range) unless given.
+       :math:`\sigma_f^2 = e(\mathbf x_0)^2 / 12` (variance of a uniform distribution spanning
+       the objective's range) unless given.
 
-    If :math:`\mathbf x_0` is not stationary (it lies on a bound, the search did not converge, or
-    a non-optimal ``x0`` was given), i.e. the Newton step
-    :math:`\sqrt{G^\top (-H)^{-1} G}` exceeds :data:`GRADIENT_WARN_TOL` correlation lengths, a
-    warning is issued. :math:`G` is kept in ``prior.gradient``: the Gaussian basis function then
-    has a linear term :math:`G^\top (\mathbf x - \mathbf x_0)` in its exponent, but a stationary
+    For a Gaussian peak :math:`f = f_\infty + A \exp(-\tfrac12 \boldsymbol\delta^\top P
+    \boldsymbol\delta)`, :math:`\boldsymbol\delta = \mathbf x - \mathbf c`, :math:`g` is the
+    quadratic :math:`\log A - \tfrac12 \boldsymbol\delta^\top P \boldsymbol\delta`, so
+    :math:`\mathbf x_0 = \mathbf c`, :math:`H = -P` and :math:`\Sigma = P / 2` exactly.
+
+    *Search.* ``f`` is evaluated (without gradients, in chunks of :data:`SAMPLE_CHUNK` rows) on
+    the first ``n_starts + n_samples`` points of a scrambled Sobol sequence of the box seeded
+    with ``seed``, and on the rows of ``x_init``. Batched L-BFGS-B (:func:`maximize_from`, in
+    unit-cube coordinates) then starts from the first ``n_starts`` Sobol points, the
+    ``n_sample_starts`` best of the other ``n_samples`` points and every row of ``x_init``. A
+    start with :math:`e > 0` climbs :math:`g = \log e` (same maximizer as :math:`f`, but its
+    gradient stays useful far in the tails of a peak, where that of :math:`f` underflows; the
+    search does not leave :math:`e > 0`); a start with :math:`e \le 0` climbs :math:`f`.
+    The end point with the largest :math:`f` is polished by a search of its own (the joint
+    problem stops when its slowest start does); :math:`\mathbf x_0` is the better of the two.
+    Cost: ``n_starts + n_samples`` (plus the rows of ``x_init``) evaluations of ``f`` without
+    gradients, then those of the L-BFGS-B iterations (each one batched call for all starts).
+
+    *Check of a searched* :math:`\mathbf x_0`. A knob is *on a bound* when it lies within
+    :data:`ON_BOUND_TOL` of its range from a limit and :math:`G` points out of the box there;
+    the other knobs are *free* (index set :math:`F`). :math:`\mathbf x_0` is rejected unless
+
+    - :math:`e(\mathbf x_0) > 0`, above :data:`BACKGROUND_REL_TOL`
+      :math:`\cdot \max(|f_\infty|, |f(\mathbf x_0)|)` and at least
+      :data:`MIN_EXCESS_FRACTION` of the best sampled excess;
+    - :math:`f` is not constant on the samples and :math:`\mathbf x_0`;
+    - :math:`H_{FF}` is not zero and its largest eigenvalue is at most
+      :data:`POSITIVE_CURVATURE_TOL` times its largest :math:`|\lambda|` (a mild repair);
+    - the Newton step of the free knobs :math:`\sqrt{G_F^\top (-\tilde H_{FF})^{-1} G_F}`
+      (:math:`\tilde H` repaired) is at most :data:`NEWTON_STEP_MAX` correlation lengths.
+
+    A given ``x0`` is not checked (only ``f(x0) > f_inf`` and a finite Hessian are required).
+
+    If :math:`\mathbf x_0` is not stationary in all knobs (it lies on a bound, the search did not
+    converge, or a non-optimal ``x0`` was given), i.e. the Newton step
+    :math:`\sqrt{G^\top (-\tilde H)^{-1} G}` exceeds :data:`GRADIENT_WARN_TOL` correlation
+    lengths, a warning is issued: a maximum on a bound is legitimate (the peak may lie beyond
+    the box). :math:`G` is kept in ``prior.gradient``: the Gaussian basis function then has a
+    linear term :math:`G^\top (\mathbf x - \mathbf x_0)` in its exponent, but a stationary
     kernel uses only the curvature, so the GP ignores it.
 
     Args:
@@ -56,9 +110,13 @@ def prior_from_model(
         bounds: ``2 x d`` knob limits.
         f_inf: background level :math:`f_\infty` of ``f`` (prior mean of the GP).
         noise: measurement noise standard deviation :math:`\sigma_n`.
-        x0: optional ``d`` expansion point; skips the optimum search.
-        n_starts: Sobol starts of the optimum search.
-        seed: seed of the optimum search.
+        x0: optional ``d`` expansion point; skips the search and its check.
+        n_starts: Sobol starts of the local search (>= 0).
+        seed: seed of the Sobol sequence of starts and samples.
+        n_samples: further Sobol points at which ``f`` is evaluated to find the peak (>= 0).
+        n_sample_starts: number of the best samples the local search also starts from (>= 0).
+        x_init: optional ``d`` or ``k x d`` extra starts (clipped into the box), e.g. the
+            machine's present setting.
         amplitude: kernel variance :math:`\sigma_f^2`; default
             :math:`(f(\mathbf x_0) - f_\infty)^2 / 12`.
         knob_names: ``d`` names; default ``["x0", "x1", ...]``.
@@ -70,8 +128,12 @@ def prior_from_model(
         The :class:`PhysicsPrior`.
 
     Raises:
-        ValueError: ``f_inf >= f(x0)``, a non-finite Hessian, ``knob_names`` of the wrong length,
-            bad ``bounds``/``x0``, or any invalid prior field.
+        ValueError: the searched ``x0`` fails the check above (the message gives the excess at
+            ``x0``, the best sampled excess, :math:`f_\infty`, the Newton step, the curvature
+            and the knobs on a bound); ``f_inf >= f(x0)``; a non-finite Hessian; ``f``
+            non-finite at every start; no start at all; negative ``n_samples`` /
+            ``n_sample_starts``; ``knob_names`` of the wrong length; bad ``bounds``, ``x0`` or
+            ``x_init``; or any invalid prior field.
     """
     b = check_bounds(bounds)
     d = b.shape[1]
@@ -80,42 +142,59 @@ def prior_from_model(
     knob_names = list(knob_names)
     if len(knob_names) != d:
         raise ValueError(f"knob_names has {len(knob_names)} entries but bounds have {d} knobs")
+    f_inf = float(f_inf)
 
+    search = None
     if x0 is None:
-        x0, _ = find_optimum(f, b, n_starts=n_starts, seed=seed)
-        x0_source = "find_optimum"
+        search = _search_peak(f, b, f_inf, n_starts, seed, n_samples, n_sample_starts, x_init)
+        x0 = search["x0"]
+        x0_source = "search"
     else:
-        x0_t = x0 if isinstance(x0, Tensor) else torch.as_tensor(x0, dtype=torch.float64)
+        x0_t = x0 if isinstance(x0, Tensor) else torch.as_tensor(x0, dtype=DTYPE)
         if x0_t.dim() != 1:
             raise ValueError(f"x0 must have shape ({d},), got {tuple(x0_t.shape)}")
         x0 = as_knob_tensor(x0_t, d, name="x0")[0][0]
         x0_source = "given"
 
+    if search is not None:
+        _check_excess(search, f_inf, knob_names)
     H, G, f_x0 = log_excess_hessian(f, x0, f_inf)
+    on_bound = _on_bound(x0, G, b)
+    if search is not None:
+        _check_curvature(search, H, G, on_bound, f_inf, knob_names, rel_floor)
     H_rep, repair_info = repair_negative_definite(H, rel_floor=rel_floor)
-    newton = torch.linalg.solve(-H_rep, G)
-    newton_step = math.sqrt(max((G @ newton).item(), 0.0))
+    newton_step = _newton_step(H_rep, G)
     if newton_step > GRADIENT_WARN_TOL:
+        where = (
+            f"knobs {[knob_names[i] for i in on_bound.nonzero().flatten().tolist()]} lie on a "
+            "bound with f rising across it"
+            if on_bound.any()
+            else "x0 may lie on a bound or the search did not converge"
+        )
         warnings.warn(
             f"x0 is not a stationary point of log(f - f_inf): the Newton step to the maximum is "
-            f"{newton_step:.3g} correlation lengths (|G| = {G.norm().item():.3g}); x0 may lie on "
-            "a bound or the search did not converge. The gradient is kept in prior.gradient; "
-            "the kernel uses only the curvature.",
+            f"{newton_step:.3g} correlation lengths (|G| = {G.norm().item():.3g}); {where}. "
+            "The gradient is kept in prior.gradient; the kernel uses only the curvature.",
             RuntimeWarning,
             stacklevel=2,
         )
     if amplitude is None:
-        amplitude = (f_x0 - float(f_inf)) ** 2 / 12.0
+        amplitude = (f_x0 - f_inf) ** 2 / 12.0
 
+    searched = search is not None
     build = {
         "x0_source": x0_source,
-        "n_starts": n_starts if x0_source == "find_optimum" else None,
-        "seed": seed if x0_source == "find_optimum" else None,
+        "n_starts": n_starts if searched else None,
+        "seed": seed if searched else None,
+        "n_samples": n_samples if searched else None,
+        "n_sample_starts": n_sample_starts if searched else None,
+        "best_sample_excess": search["best_sample_excess"] if searched else None,
         "hessian_eigenvalues": repair_info["eigenvalues_before"],
         "repair_n_clipped": repair_info["n_clipped"],
         "repair_relative_change": repair_info["relative_change"],
         "rel_floor": rel_floor,
         "newton_step": newton_step,
+        "knobs_on_bound": [knob_names[i] for i in on_bound.nonzero().flatten().tolist()],
     }
     prov = dict(provenance or {})
     prov["build"] = build
@@ -131,3 +210,205 @@ def prior_from_model(
         gradient=G,
         provenance=prov,
     )
+
+
+def _evaluate_chunked(f: Callable[[Tensor], Tensor], X: Tensor) -> Tensor:
+    """``f`` on the ``N x d`` rows of ``X``, no gradients: ``N`` values, ``-inf`` if not finite."""
+    out = []
+    with torch.no_grad():
+        for Xc in X.split(SAMPLE_CHUNK):
+            y = torch.as_tensor(f(Xc)).detach().to(DTYPE).reshape(-1)
+            if y.numel() != Xc.shape[0]:
+                raise ValueError(
+                    f"f must map an N x d tensor to N values; got {y.numel()} values for "
+                    f"input {tuple(Xc.shape)}"
+                )
+            out.append(y)
+    y = torch.cat(out) if out else torch.empty(0, dtype=DTYPE)
+    return torch.where(torch.isfinite(y), y, torch.full_like(y, -torch.inf))
+
+
+def _search_peak(
+    f: Callable[[Tensor], Tensor],
+    b: Tensor,
+    f_inf: float,
+    n_starts: int,
+    seed: int,
+    n_samples: int,
+    n_sample_starts: int,
+    x_init,
+) -> dict[str, Any]:
+    """Sample ``f``, then run the batched local search on log(f - f_inf) / f (see the docstring)."""
+    d = b.shape[1]
+    lo, width = b[0], b[1] - b[0]
+    for name, val in (
+        ("n_starts", n_starts),
+        ("n_samples", n_samples),
+        ("n_sample_starts", n_sample_starts),
+    ):
+        if val < 0:
+            raise ValueError(f"{name} must be >= 0, got {val}")
+    n_sobol = n_starts + n_samples
+    Z_sobol = (
+        torch.quasirandom.SobolEngine(d, scramble=True, seed=seed).draw(n_sobol, dtype=DTYPE)
+        if n_sobol
+        else torch.empty(0, d, dtype=DTYPE)
+    )
+    Z_init = torch.empty(0, d, dtype=DTYPE)
+    if x_init is not None:
+        xi = as_knob_tensor(x_init, d, name="x_init")[0]
+        Z_init = ((xi - lo) / width).clamp(0.0, 1.0)
+    Z_all = torch.cat([Z_sobol, Z_init])
+    if Z_all.shape[0] == 0:
+        raise ValueError("no starting point: give n_starts > 0, n_samples > 0 or x_init")
+    y_all = _evaluate_chunked(f, lo + width * Z_all)
+    if not torch.isfinite(y_all).any():
+        raise ValueError(f"f was not finite at any of the {Z_all.shape[0]} sampled points")
+
+    y_pool = y_all[n_starts:n_sobol]
+    best = y_pool.argsort(descending=True)[: min(n_sample_starts, y_pool.numel())]
+    best = best[torch.isfinite(y_pool[best])]
+    Z0 = torch.cat([Z_sobol[:n_starts], Z_sobol[n_starts + best], Z_init])
+    y0 = torch.cat([y_all[:n_starts], y_pool[best], y_all[n_sobol:]])
+    if Z0.shape[0] == 0:
+        raise ValueError("no starting point: give n_starts > 0, n_sample_starts > 0 or x_init")
+    X_end = _climb(f, b, f_inf, Z0, y0)
+    y_end = _evaluate_chunked(f, X_end)
+    if not torch.isfinite(y_end).any():
+        raise ValueError("f was not finite at any end point of the local search")
+    i = int(y_end.argmax())
+    # polish the best end point alone: the joint problem stops when its slowest start does
+    x_pol = _climb(f, b, f_inf, ((X_end[i] - lo) / width).clamp(0.0, 1.0)[None], y_end[i, None])
+    y_pol = _evaluate_chunked(f, x_pol)
+    if y_pol[0] >= y_end[i]:
+        X_end, y_end, i = torch.cat([X_end, x_pol]), torch.cat([y_end, y_pol]), X_end.shape[0]
+    finite = y_all[torch.isfinite(y_all)]
+    return {
+        "x0": X_end[i],
+        "f_x0": float(y_end[i]),
+        "best_sample_excess": float(finite.max()) - f_inf,
+        # range of f over the samples and x0: zero for a flat f
+        "range": max(float(finite.max()), float(y_end[i]))
+        - min(float(finite.min()), float(y_end[i])),
+        "n_evaluated": int(Z_all.shape[0]),
+        "n_local_starts": int(Z0.shape[0]),
+    }
+
+
+def _climb(
+    f: Callable[[Tensor], Tensor], b: Tensor, f_inf: float, Z0: Tensor, y0: Tensor
+) -> Tensor:
+    """Batched L-BFGS-B from the unit-cube starts ``Z0`` (values ``y0`` of ``f``): a start with
+    ``f > f_inf`` climbs log(f - f_inf) and stays where ``f > f_inf``, the others climb ``f``.
+    Returns the ``k x d`` end points (knob units)."""
+    use_log = y0 > f_inf  # per start, fixed: each start follows its own path
+
+    def objective(X: Tensor) -> Tensor:
+        y = torch.as_tensor(f(X)).to(DTYPE).reshape(-1)
+        if y.numel() != X.shape[0]:
+            raise ValueError(f"f must return one value per row, got shape {tuple(y.shape)}")
+        y = y + 0.0 * X.sum(-1)  # keeps a graph if f ignores X
+        e = y - f_inf
+        pos = e > 0
+        log_e = torch.log(torch.where(pos, e, torch.ones_like(e)))
+        nan = torch.full_like(e, math.nan)  # a log start at e <= 0: penalized, the search backs off
+        return torch.where(use_log, torch.where(pos, log_e, nan), y)
+
+    return maximize_from(objective, b, Z0)[0]
+
+
+def _on_bound(x0: Tensor, G: Tensor, b: Tensor) -> Tensor:
+    """``d`` bool: knob on a limit with the gradient of log(f - f_inf) pointing out of the box."""
+    tol = ON_BOUND_TOL * (b[1] - b[0])
+    return ((x0 >= b[1] - tol) & (G > 0)) | ((x0 <= b[0] + tol) & (G < 0))
+
+
+def _newton_step(H_neg_def: Tensor, G: Tensor) -> float:
+    r""":math:`\sqrt{G^\top (-H)^{-1} G}` (correlation lengths) for a negative-definite ``H``."""
+    if G.numel() == 0:
+        return 0.0
+    step = torch.linalg.solve(-H_neg_def, G)
+    return math.sqrt(max((G @ step).item(), 0.0))
+
+
+def _not_a_maximum(
+    problem: str, search: dict[str, Any], f_inf: float, knob_names: list[str], extra: str = ""
+) -> ValueError:
+    """The ValueError for a searched x0 that is not a maximum: what was found, what to do."""
+    return ValueError(
+        f"prior_from_model: the search did not find a maximum of f ({problem}). Found "
+        f"f(x0) = {search['f_x0']:.6g}, i.e. f(x0) - f_inf = {search['f_x0'] - f_inf:.3g}, vs "
+        f"the best of {search['n_evaluated']} sampled points f - f_inf = "
+        f"{search['best_sample_excess']:.3g}, with f_inf = {f_inf:.6g} "
+        f"({search['n_local_starts']} local starts){extra}. Check f_inf (f must rise above it "
+        "near the peak), give more samples (n_samples, n_sample_starts, n_starts) or starts "
+        "near the peak (x_init), or give x0."
+    )
+
+
+def _check_excess(search: dict[str, Any], f_inf: float, knob_names: list[str]) -> None:
+    """Reject a searched x0 on the background, below the best sample, or a flat ``f``."""
+    e0, e_best = search["f_x0"] - f_inf, search["best_sample_excess"]
+    scale = max(abs(f_inf), abs(search["f_x0"]))
+    if search["n_evaluated"] > 1 and search["range"] <= 1e-14 * scale:
+        problem = (
+            f"f takes the same value at all {search['n_evaluated']} sampled points and at x0: "
+            "it is flat there (or its peak is too narrow for the samples)"
+        )
+    elif not e0 > 0:
+        problem = "f(x0) <= f_inf: f does not rise above the background f_inf"
+    elif e0 <= BACKGROUND_REL_TOL * scale:
+        problem = "f(x0) - f_inf is negligible: x0 lies on the flat background"
+    elif e0 < MIN_EXCESS_FRACTION * e_best:
+        problem = (
+            f"f(x0) - f_inf is below {MIN_EXCESS_FRACTION:g} of the best sampled excess: the "
+            "local search did not climb"
+        )
+    else:
+        return
+    raise _not_a_maximum(problem, search, f_inf, knob_names)
+
+
+def _check_curvature(
+    search: dict[str, Any],
+    H: Tensor,
+    G: Tensor,
+    on_bound: Tensor,
+    f_inf: float,
+    knob_names: list[str],
+    rel_floor: float,
+) -> None:
+    """Reject a searched x0 whose free knobs are not at a maximum of log(f - f_inf)."""
+    free = (~on_bound).nonzero().flatten()
+    if free.numel() == 0:
+        return  # a corner of the box with f rising across every bound
+    H_ff = H[free][:, free]
+    G_f = G[free]
+    eig = torch.linalg.eigvalsh(H_ff)
+    lam_abs = eig.abs().max().item()
+    bound_names = [knob_names[i] for i in on_bound.nonzero().flatten().tolist()]
+    if lam_abs == 0.0:
+        step, problem = math.inf, "the Hessian of log(f - f_inf) in the free knobs is zero"
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the repair of the full H below warns once
+            H_rep, _ = repair_negative_definite(H_ff, rel_floor=rel_floor)
+        step = _newton_step(H_rep, G_f)
+        lam_max = eig.max().item()
+        if lam_max > POSITIVE_CURVATURE_TOL * lam_abs:
+            problem = (
+                f"the Hessian of log(f - f_inf) in the free knobs has a positive eigenvalue "
+                f"{lam_max:.3g} (largest |eigenvalue| {lam_abs:.3g}): a saddle or a minimum"
+            )
+        elif step > NEWTON_STEP_MAX:
+            problem = (
+                f"x0 is not stationary in the free knobs: Newton step {step:.3g} correlation "
+                f"lengths > {NEWTON_STEP_MAX:g}"
+            )
+        else:
+            return
+    extra = (
+        f"; Newton step in the {free.numel()} free knobs {step:.3g} correlation lengths, "
+        f"knobs on a bound: {bound_names or 'none'}"
+    )
+    raise _not_a_maximum(problem, search, f_inf, knob_names, extra)
