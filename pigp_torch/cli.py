@@ -312,7 +312,7 @@ def cmd_demo(args) -> int:
         f_inf=model_ring.loss_background,
         noise=0.04,
         knob_names=model_ring.knob_names,
-        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed}), knobs in A"},
+        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed})"},
     )
     print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
           f"{prior.f_x0:.3f} mA/min")  # fmt: skip

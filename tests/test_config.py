@@ -242,9 +242,9 @@ def test_each_method_is_built_with_its_options(tmp_path):
 
 
 def test_sim_bounds_outside_the_simulator_range_are_refused():
-    """A box wider than the simulated knobs' range (±0.015 1/m) is an error, not a clip."""
+    """A box wider than the simulated knobs' range (±30 A) is an error, not a clip."""
     with pytest.raises(ConfigError, match=r"bounds outside the simulator's range"):
-        build_run(validate_config(sim(knobs={"01G-QSS4": [-0.02, 0.01]})))
+        build_run(validate_config(sim(knobs={"01G-QSS4": [-40.0, 10.0]})))
 
 
 def test_x_init_starts_the_sim_and_is_validated():

@@ -188,10 +188,10 @@ def ring_parameters(ring: at.Lattice) -> dict:
     _, beam, _ = at.ohmi_envelope(ring)
     rp = ring.radiation_parameters()
     flat = ring.disable_6d(copy=True)
-    _, optics4, end = at.get_optics(flat, refpts=len(flat), get_chrom=True)
+    _, optics4, _ = at.get_optics(flat, get_chrom=True)
     eps = np.sort(np.asarray(beam.mode_emittances, dtype=float))
     return {
-        "tunes": [float(v) for v in end.mu[0, :2] / (2 * np.pi)],
+        "tunes": [float(v) for v in flat.get_tune(get_integer=True)[:2]],
         "chromaticity": [float(v) for v in optics4.chromaticity[:2]],
         "eps_x_nm": float(eps[1] * 1e9),
         "U0_keV": float(rp.U0 / 1e3),

@@ -174,7 +174,8 @@ def insert_knobs(ring: at.Lattice, names) -> tuple[at.Lattice, list[int]]:
             elems.append(e.deepcopy())
             continue
         name = by_index[i]
-        if isinstance(e, at.ThinMultipole):
+        thin_already = isinstance(e, at.ThinMultipole) and not getattr(e, "Length", 0.0) > 0
+        if thin_already:
             thin = e.deepcopy()
             elems.append(thin)
         elif isinstance(e, at.Multipole) and e.Length > 0:
@@ -188,7 +189,7 @@ def insert_knobs(ring: at.Lattice, names) -> tuple[at.Lattice, list[int]]:
                 f"knob {name!r}: element {type(e).__name__} {e.FamName!r} cannot carry a skew "
                 "winding (use a thin multipole, a sextupole or a quadrupole)"
             )
-        where[name] = len(elems) - 1 - (0 if isinstance(e, at.ThinMultipole) else 1)
+        where[name] = len(elems) - (1 if thin_already else 2)
     for i in where.values():
         pa = np.zeros(max(2, len(elems[i].PolynomA)))
         pb = np.zeros(max(2, len(elems[i].PolynomB)))

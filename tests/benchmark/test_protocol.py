@@ -99,8 +99,8 @@ def test_machine_archive_is_near_operating_point():
     machine = SimulatedMachine(Spear3Coupling(1), noise=0.04, seed=0)
     X, Y = machine_archive(machine, 400, spread=0.2, seed=3)
     assert X.shape == (400, 13) and Y.shape == (400,)
-    assert X.std().item() == pytest.approx(0.2 * 0.015, rel=0.1)
-    assert X.abs().max().item() <= 0.015
+    assert X.std().item() == pytest.approx(0.2 * 30.0, rel=0.1)  # amps
+    assert X.abs().max().item() <= 30.0
     assert (Y - machine.true_value(X)).std().item() == pytest.approx(0.04, rel=0.15)
     assert machine.n_reads == 0
 

@@ -104,9 +104,9 @@ def test_max_step_is_measured_from_the_readbacks(ioc, probe, ca_context):
 def test_put_refused_by_the_ioc_raises_machine_error(ioc, probe, ca_context):
     """Machine bounds wider than the IOC's limits: the IOC refuses, the machine raises."""
     d = len(ioc.knob_names)
-    lim = torch.full((d,), 0.02, dtype=torch.float64)
+    lim = torch.full((d,), 40.0, dtype=torch.float64)
     x = torch.zeros(d, dtype=torch.float64)
-    x[0] = 0.018  # inside the machine's bounds, outside the IOC's +-0.015
+    x[0] = 35.0  # inside the machine's bounds, outside the IOC's +-30 A
     with make_machine(ioc, ca_context, bounds=torch.stack([-lim, lim])) as m:
         with pytest.raises(MachineError, match=r"no answer to put \['01G-QSS4:CurrSetpt'\]"):
             m.set(x)

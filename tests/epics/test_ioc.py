@@ -195,10 +195,10 @@ def test_ioc_refuses_out_of_bounds_put_over_ca(ioc, probe):
     """A raw CA put outside the knob bounds fails; setpoint and readback are unchanged."""
     sp, rb = ioc.setpoint_pvs[2], ioc.readback_pvs[2]
     with pytest.raises(CaprotoTimeoutError):  # caproto's client: a refused put never completes
-        probe.write(sp, 0.0151, timeout=0.5)
+        probe.write(sp, 30.01, timeout=0.5)  # amps: just beyond the windings' +-30 A
     assert probe.read(sp) == 0.0 and probe.read(rb) == 0.0
-    probe.write(sp, -0.015)  # the bound itself is accepted
-    assert probe.read(rb) == -0.015
+    probe.write(sp, -30.0)  # the bound itself is accepted
+    assert probe.read(rb) == -30.0
 
 
 def test_readback_delay_over_ca(ioc, probe):
