@@ -18,13 +18,13 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
-from pigp_torch.simulation import Spear3Coupling  # noqa: E402
+from pigp_torch.simulation import Spear3Coupling
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "simulation"))
-from test_fidelity import authors_precision, fidelity, model_precision  # noqa: E402
+from test_fidelity import authors_precision, fidelity, model_precision
 
 
 def main(argv=None) -> int:
@@ -45,8 +45,8 @@ def main(argv=None) -> int:
         row = (seed, sim.error_scale, float(x.abs().max()), 100 * float(r.eps_y / r.eps_x), f,
                *m["cosines"], m["r_diag"], m["r_offdiag"], m["condition"])  # fmt: skip
         rows.append(row)
-        print("%4d  %5.2f  %6.2f  %8.3f  %5.3f  %.3f %.3f %.3f  %.3f %.3f  %5.0f  %.0f"
-              % (*row, time.perf_counter() - t), flush=True)  # fmt: skip
+        fmt = "{:4d}  {:5.2f}  {:6.2f}  {:8.3f}  {:5.3f}  " + "{:.3f} " * 5 + " {:5.0f}  {:.0f}"
+        print(fmt.format(*row, time.perf_counter() - t), flush=True)
     A = np.array(rows)
     inside = float(np.mean(A[:, 2] < 30.0 * 0.999))
     for k, name in ((1, "error scale"), (2, "max |knob| at the optimum (A)"),

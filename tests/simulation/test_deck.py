@@ -1,4 +1,4 @@
-"""The SPEAR3 lattice decks: rings built from the shipped element tables reproduce pyAT's numbers."""
+"""The SPEAR3 lattice decks: rings built from the shipped element tables give pyAT's numbers."""
 
 import pytest
 
@@ -14,7 +14,7 @@ def built(request):
 
 def test_ring_matches_the_headers_pyat_numbers(built):
     """Tunes, chromaticity, εx, U0, σδ and damping times agree with the deck header within 1 %."""
-    optics, ring, got, facts = built
+    _, ring, got, facts = built
     assert ring.circumference == pytest.approx(facts["circumference_m"], rel=1e-9)
     for mine, theirs in zip(got["tunes"], facts["tunes"], strict=True):
         assert mine == pytest.approx(theirs, abs=1e-3)  # 1e-4 of the tune, well inside 1 %
