@@ -146,7 +146,16 @@ def test_restore_best_is_verified_by_readback(tmp_path):
 
     m = Stuck(x_init=(-0.2, -0.9))
     with pytest.raises(MachineError, match=r"readback check failed on knob indices \[0\]"):
-        optimize(m, Walk(BOUNDS, step=0.01), None, 3, restore="best", log=tmp_path / "s.jsonl")
+        optimize(
+            m,
+            Walk(BOUNDS, step=0.01),
+            None,
+            3,
+            restore="best",
+            log=tmp_path / "s.jsonl",
+            check_readings=False,  # the stuck readback would stop the run at its first reading
+            restore_interval=0.0,
+        )
     end = read_log(tmp_path / "s.jsonl").last_end
     assert end["status"] == "aborted" and end["reason"].startswith("restoring the knobs failed")
 

@@ -23,6 +23,8 @@ SETPOINT_SUFFIX = ":CurrSetpt"
 READBACK_SUFFIX = ":Curr1"
 NAN_READINGS_SUFFIX = "Sim:NanReadings"
 READBACK_DELAY_SUFFIX = "Sim:ReadbackDelay"
+FROZEN_SUFFIX = "Sim:Frozen"
+REBOOT_ON_READ_SUFFIX = "Sim:RebootOnRead"
 #: Loopback: the simulated IOC never listens on an outside interface.
 LOOPBACK = "127.0.0.1"
 
@@ -35,7 +37,7 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument(
         "--knobs",
         default="paper13",
-        help="paper13 (default), powered14, all72, or a comma-separated list of windings",
+        help="paper13 (default), powered14, all72, or one winding or a comma-separated list",
     )
     p.add_argument(
         "--optics", default="achromat", choices=["achromat", "low_emittance"], help="ring optics"
@@ -75,11 +77,13 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 __all__ = [
     "DEFAULT_PREFIX",
+    "FROZEN_SUFFIX",
     "LOOPBACK",
     "LOSS_RATE_SUFFIX",
     "NAN_READINGS_SUFFIX",
     "READBACK_DELAY_SUFFIX",
     "READBACK_SUFFIX",
+    "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
     "add_ioc_arguments",
 ]

@@ -9,7 +9,7 @@ PVs served (``K`` knobs, prefix ``P``, default ``"SPEAR:"``):
 ========================  ==========  ========================================================
 PV                        access      meaning
 ========================  ==========  ========================================================
-``<knob>:CurrSetpt``      read/write  knob setpoint (integrated skew strength K1sL, 1/m); puts
+``<knob>:CurrSetpt``      read/write  knob setpoint (in the simulator's knob units); puts
                                       outside the knob bounds are refused (control limits)
 ``<knob>:Curr1``          read only   readback: follows the setpoint after ``ReadbackDelay``
 ``P BeamLossRate``        read only   loss rate at the *readbacks* + Gaussian noise (mA/min),
@@ -17,7 +17,16 @@ PV                        access      meaning
 ``P Sim:ReadbackDelay``   read/write  fault injection: seconds before readbacks follow (>= 0)
 ``P Sim:NanReadings``     read/write  fault injection: the next N client reads of the loss
                                       rate return NaN (decremented on each read)
+``P Sim:Frozen``          read/write  fault injection (tests): 1 stops the loss-rate refreshes
+                                      (value and timestamp stay), 0 resumes them
+``P Sim:RebootOnRead``    read/write  fault injection (tests): the N-th client read of the loss
+                                      rate from now (decremented on each read) is answered,
+                                      then the "IOC reboots": every setpoint and readback
+                                      drops to its power-on value (the initial knobs)
 ========================  ==========  ========================================================
+
+The loss rate's CA timestamp is the time of its last refresh (a client read does not renew
+it), so a client can tell a fresh reading from a repeated one.
 
 The physics is :class:`~pigp_torch.machine.SimulatedMachine` around a
 :class:`~pigp_torch.simulation.Spear3Coupling` ring: at every refresh the machine is set to the
@@ -26,8 +35,8 @@ readbacks and one noisy reading :math:`y = f(x_\mathrm{rb}) + \epsilon`,
 is published. Between refreshes a read returns the last published value, as on a real monitor
 PV; a client that averages readings should space them by at least ``update_period``.
 
-Knob values are served in the simulator's units (K1sL, 1/m); converting to magnet currents is
-a calibration of the real machine and out of scope here.
+Knob values are served in the simulator's units (its ``knob_units`` attribute, shown as the
+setpoints' EGU).
 
 Safety: the server binds to 127.0.0.1 only (``EPICS_CAS_INTF_ADDR_LIST``) and sends its beacons
 to 127.0.0.1 only. :func:`start_sim_ioc` runs it in a subprocess on a free port for tests and
@@ -57,11 +66,13 @@ from caproto.server import PVGroup, pvproperty
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.epics import (
     DEFAULT_PREFIX,
+    FROZEN_SUFFIX,
     LOOPBACK,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
     READBACK_DELAY_SUFFIX,
     READBACK_SUFFIX,
+    REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
     add_ioc_arguments,
 )
@@ -113,7 +124,10 @@ class SimRingIOC(PVGroup):
         self.setpoints = [getattr(self, f"setpoint_{i}") for i in range(d)]
         self.readbacks = [getattr(self, f"readback_{i}") for i in range(d)]
         self._x_readback = torch.tensor([rb.value for rb in self.readbacks], dtype=DTYPE)
+        self._power_on = [float(sp.value) for sp in self.setpoints]
         self._last_reading = float("nan")
+        self._refresh_stamp = time.time()
+        self._served_nan = False
         self._refresh()  # a valid first reading (this also checks the knobs against the bounds)
         self._put_count = [0] * d  # latest put per knob wins over older delayed readbacks
         self._tasks: set[asyncio.Task] = set()
@@ -145,23 +159,45 @@ class SimRingIOC(PVGroup):
         """One noisy reading of the simulated loss rate at the current readbacks."""
         self.machine.set(self._x_readback)
         self._last_reading = float(self.machine.read())
+        self._refresh_stamp = time.time()
         return self._last_reading
 
     async def _refresh_loop(self, async_lib) -> None:
-        """Publish a new loss-rate reading every ``update_period`` seconds (forever)."""
+        """Publish a new loss-rate reading every ``update_period`` seconds (forever), except
+        while ``Sim:Frozen`` is set."""
         sleep = async_lib.library.sleep
         while True:
             t0 = time.monotonic()
-            await self.loss_rate.write(self._refresh())
+            if not int(self.frozen.value):
+                value = self._refresh()
+                await self.loss_rate.write(value, timestamp=self._refresh_stamp)
+                self._served_nan = False
             await sleep(max(0.0, self.update_period - (time.monotonic() - t0)))
 
-    async def _on_read(self) -> float:
-        """A client reads the loss rate: NaN while ``Sim:NanReadings`` > 0, else the last value."""
+    async def _reboot(self) -> None:
+        """Every setpoint and readback back at its power-on value (an IOC without autosave)."""
+        for i, value in enumerate(self._power_on):
+            self._put_count[i] += 1
+            await self.setpoints[i].write(value, verify_value=False)
+            await self._set_readback(i, value)
+
+    async def _on_read(self):
+        """A client reads the loss rate: NaN while ``Sim:NanReadings`` > 0, else the last value
+        with the timestamp of its refresh (``None``: the stored value is served unchanged)."""
+        n_reboot = int(self.reboot_on_read.value)
+        if n_reboot > 0:
+            await self.reboot_on_read.write(n_reboot - 1)
+            if n_reboot == 1:
+                await self._reboot()
         n = int(self.nan_readings.value)
         if n > 0:
             await self.nan_readings.write(n - 1)
+            self._served_nan = True
             return float("nan")
-        return self._last_reading
+        if self._served_nan:  # put the last refresh back, with its own timestamp
+            self._served_nan = False
+            await self.loss_rate.write(self._last_reading, timestamp=self._refresh_stamp)
+        return None
 
     # ------------------------------------------------------------------ names
     @property
@@ -184,6 +220,7 @@ def sim_ioc_class(
     x_init=None,
     readback_delay: float = 0.0,
     nan_readings: int = 0,
+    units: str = "1/m",
 ) -> type[SimRingIOC]:
     r"""A :class:`SimRingIOC` subclass with the PVs of ``knob_names`` (see the module table).
 
@@ -200,6 +237,8 @@ def sim_ioc_class(
         x_init: ``K`` initial setpoints and readbacks (default zeros: skews off).
         readback_delay: initial value of the ``Sim:ReadbackDelay`` switch (s, >= 0).
         nan_readings: initial value of the ``Sim:NanReadings`` switch (>= 0).
+        units: engineering units of the setpoints and readbacks (the simulator's
+            ``knob_units``).
     """
     names = [str(n) for n in knob_names]
     bounds = check_bounds(bounds)
@@ -223,8 +262,8 @@ def sim_ioc_class(
             lower_ctrl_limit=lo,
             upper_ctrl_limit=hi,
             precision=6,
-            units="1/m",
-            doc=f"setpoint of {name} (K1sL, 1/m), limits [{lo}, {hi}]",
+            units=str(units),
+            doc=f"setpoint of {name} ({units}), limits [{lo}, {hi}]",
         )
 
         async def put(group, instance, value, _i=i):
@@ -238,8 +277,8 @@ def sim_ioc_class(
             dtype=ChannelType.DOUBLE,
             read_only=True,
             precision=6,
-            units="1/m",
-            doc=f"readback of {name} (K1sL, 1/m)",
+            units=str(units),
+            doc=f"readback of {name} ({units})",
         )
 
     loss_rate = pvproperty(
@@ -277,6 +316,22 @@ def sim_ioc_class(
         lower_ctrl_limit=0,
         upper_ctrl_limit=1_000_000,
         doc="fault injection: the next N reads of the loss rate return NaN",
+    )
+    attrs["frozen"] = pvproperty(
+        value=0,
+        name=f"{prefix}{FROZEN_SUFFIX}",
+        dtype=ChannelType.LONG,
+        lower_ctrl_limit=0,
+        upper_ctrl_limit=1,
+        doc="fault injection (tests): 1 stops the loss-rate refreshes",
+    )
+    attrs["reboot_on_read"] = pvproperty(
+        value=0,
+        name=f"{prefix}{REBOOT_ON_READ_SUFFIX}",
+        dtype=ChannelType.LONG,
+        lower_ctrl_limit=0,
+        upper_ctrl_limit=1_000_000,
+        doc="fault injection (tests): reboot (knobs to power-on values) at the N-th read",
     )
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
 
@@ -321,6 +376,7 @@ def make_sim_ioc(
         x_init=x_init,
         readback_delay=readback_delay,
         nan_readings=nan_readings,
+        units=getattr(sim, "knob_units", "1/m"),
     )
     return cls(prefix="", machine=machine, update_period=update_period)
 
@@ -392,7 +448,9 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
 
     Prints :data:`READY_MESSAGE` and (with ``log_pv_names``) the PV names once the server's
     sockets are bound. SIGTERM is handled as Ctrl-C (main thread only): ``asyncio.run`` cancels
-    the server task, which closes its sockets and returns.
+    the server task, which closes its sockets and returns. SIGINT is given Python's default
+    handler for the duration even where the parent ignored it (a background job started from a
+    script), because the SIGTERM path goes through SIGINT.
     """
     import signal
     import threading
@@ -410,19 +468,44 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
         signal.raise_signal(signal.SIGINT)  # asyncio.run's own SIGINT handling: a clean stop
 
     in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
+    previous = previous_int = None
+    if in_main:
+        previous = signal.signal(signal.SIGTERM, on_sigterm)
+        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         run(ioc.pvdb, interfaces=[LOOPBACK], startup_hook=announce)  # returns on Ctrl-C
     finally:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous_int)
+
+
+def knobs_from_text(text: str):
+    """``--knobs`` text as :class:`~pigp_torch.simulation.Spear3Coupling` takes it: a named set
+    (``paper13`` ...) as is, else one winding or a comma-separated list of windings (a list).
+
+    Raises:
+        ValueError: an unknown set or winding name.
+    """
+    from pigp_torch.simulation.lattice import knob_names_for
+
+    text = str(text).strip()
+    if "," not in text:
+        try:
+            knob_names_for(text)
+            return text
+        except (ValueError, KeyError):
+            pass
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    knob_names_for(names)  # unknown windings raise here, with the simulator's message
+    return names
 
 
 def sim_ioc_from_args(args):
     """The IOC described by the options of :func:`pigp_torch.epics.add_ioc_arguments`."""
     return make_sim_ioc(
         args.seed,
-        knobs=args.knobs.split(",") if "," in args.knobs else args.knobs,
+        knobs=knobs_from_text(args.knobs),
         optics=args.optics,
         noise=args.noise,
         noise_seed=args.noise_seed,
@@ -483,6 +566,14 @@ class SimIOCProcess:
     @property
     def readback_delay_pv(self) -> str:
         return f"{self.prefix}{READBACK_DELAY_SUFFIX}"
+
+    @property
+    def frozen_pv(self) -> str:
+        return f"{self.prefix}{FROZEN_SUFFIX}"
+
+    @property
+    def reboot_on_read_pv(self) -> str:
+        return f"{self.prefix}{REBOOT_ON_READ_SUFFIX}"
 
     @property
     def setpoint_pvs(self) -> list[str]:

@@ -52,6 +52,8 @@ def test_pv_names_limits_and_initial_values():
         "T:BeamLossRate",
         "T:Sim:ReadbackDelay",
         "T:Sim:NanReadings",
+        "T:Sim:Frozen",
+        "T:Sim:RebootOnRead",
     ]
     assert ioc.loss_rate_pv == "T:BeamLossRate"
     assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]
@@ -112,9 +114,62 @@ def test_nan_readings_count_client_reads():
         return [await ioc._on_read() for _ in range(3)]
 
     values = asyncio.run(reads())
-    assert [v != v for v in values] == [True, True, False]
-    assert values[2] == 0.5  # 1 - 0.25 - 0.25
+    assert [v != v for v in values[:2]] == [True, True]
+    assert values[2] is None  # the stored value is served ...
+    assert ioc.loss_rate.value == 0.5  # ... and it is the published one again: 1 - 0.25 - 0.25
     assert ioc.nan_readings.value == 0
+
+
+def test_client_reads_keep_the_refresh_timestamp_and_frozen_stops_refreshes():
+    """A client read does not renew the loss rate's timestamp; with Sim:Frozen = 1 the refresh
+    loop publishes nothing (value and timestamp stay), with 0 it publishes again."""
+    from caproto import ChannelType
+
+    ioc = make_ioc(x_init=[0.5, 0.5])
+    ioc.update_period = 0.02
+
+    class Lib:  # the async_lib the server passes to startup hooks
+        class library:
+            sleep = staticmethod(asyncio.sleep)
+
+    async def scenario():
+        task = asyncio.ensure_future(ioc._refresh_loop(Lib))
+        await asyncio.sleep(0.05)
+        await ioc.frozen.write(1)
+        await asyncio.sleep(0.03)
+        stamp = ioc.loss_rate.timestamp
+        for _ in range(3):
+            await ioc.loss_rate.read(ChannelType.TIME_DOUBLE)
+        await asyncio.sleep(0.1)
+        frozen_stamp = ioc.loss_rate.timestamp
+        await ioc.frozen.write(0)
+        await asyncio.sleep(0.1)
+        task.cancel()
+        return stamp, frozen_stamp, ioc.loss_rate.timestamp
+
+    stamp, frozen_stamp, later = asyncio.run(scenario())
+    assert frozen_stamp == stamp and later > stamp
+
+
+def test_reboot_on_read_drops_the_knobs_to_their_power_on_values():
+    """Sim:RebootOnRead = 2: the first read changes nothing, the second is answered and then
+    every setpoint and readback is back at the initial knobs."""
+    ioc = make_ioc(x_init=[0.5, -1.0])
+
+    async def scenario():
+        await ioc.setpoints[0].write(0.25)
+        await ioc.setpoints[1].write(1.5)
+        await ioc.reboot_on_read.write(2)
+        await ioc._on_read()
+        first = [sp.value for sp in ioc.setpoints]
+        await ioc._on_read()
+        return first
+
+    first = asyncio.run(scenario())
+    assert first == [0.25, 1.5]
+    assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]
+    assert [rb.value for rb in ioc.readbacks] == [0.5, -1.0]
+    assert ioc.reboot_on_read.value == 0
 
 
 def test_noise_is_the_seeded_simulated_machine_noise():
