@@ -62,10 +62,11 @@ def test_a_run_prints_steps_and_a_summary_and_restores_the_knobs(tmp_path, capsy
     assert cli.main(["optimize", "--config", write_config(tmp_path)]) == 0
     out = capsys.readouterr().out
     log = read_log(tmp_path / "run.jsonl")
-    steps = [line for line in out.splitlines() if line.startswith("step ")]
-    assert log.n_evaluations == 5 and len(steps) == 5 and steps[-1].startswith("step    4/5")
+    steps = [line for line in out.splitlines() if line.startswith("evaluation ")]
+    assert log.n_evaluations == 5 and len(steps) == 5
+    assert steps[0].startswith("evaluation    1/5") and steps[-1].startswith("evaluation    5/5")
     step, _, y = log.best()
-    assert f"best y = {y:.6g} at step {step}" in out
+    assert f"best y = {y:.6g} at evaluation {step + 1}" in out
     assert "status: completed" in out and "knobs restored to initial" in out
     assert log.last_end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
     assert log.header["config"]["budget"] == 5 and log.header["knob_names"] == KNOBS
