@@ -235,6 +235,8 @@ def _check_log_path(path: Path) -> None:
     folder = path.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
 

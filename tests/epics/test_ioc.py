@@ -328,3 +328,56 @@ def test_start_sim_ioc_reports_a_failed_start():
     with pytest.raises(RuntimeError, match=r"(?s)simulated IOC exited with code 1.*noise must be"):
         with start_sim_ioc(1, noise=-1.0, startup_timeout=60):
             pass  # pragma: no cover - never reached
+
+
+def test_a_single_winding_is_accepted_by_knobs():
+    """`--knobs 01G-QSS4` (one winding, no comma) is a list of one; sets stay names; unknown
+    windings are refused with the simulator's message."""
+    from pigp_torch.epics.ioc import knobs_from_text
+
+    assert knobs_from_text("01G-QSS4") == ["01G-QSS4"]
+    assert knobs_from_text("01G-QSS4, 02G-QSS3") == ["01G-QSS4", "02G-QSS3"]
+    assert knobs_from_text("paper13") == "paper13"
+    with pytest.raises(ValueError):
+        knobs_from_text("NOT-A-WINDING")
+
+
+@pytest.mark.slow  # a Python start with torch and pyAT imports (~5-10 s)
+def test_serve_sim_started_in_the_background_stops_on_sigterm(tmp_path):
+    """`pigp serve-sim --knobs 01G-QSS4` started as a script's background job (SIGINT ignored)
+    serves the one knob and exits 0 on SIGTERM."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    port = free_port()
+    code = (
+        "import argparse, sys; from pigp_torch.commands import serve_sim; "
+        "p = argparse.ArgumentParser(); serve_sim.register(p.add_subparsers(), None); "
+        "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))"
+    )
+    cmd = [sys.executable, "-c", code, "serve-sim", "--port", str(port), "--knobs", "01G-QSS4"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    log = tmp_path / "serve-sim.log"
+    with open(log, "wb") as sink:
+        proc = subprocess.Popen(  # as `cmd &` in a script: SIGINT ignored
+            cmd,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        )
+    try:
+        deadline = time.monotonic() + 90
+        while "  SPEAR:Sim:RebootOnRead" not in (out := log.read_text()):
+            assert proc.poll() is None and time.monotonic() < deadline, out
+            time.sleep(0.1)
+        assert "  01G-QSS4:CurrSetpt\n" in out and "02G-QSS3" not in out
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0, log.read_text()
+        assert "simulated IOC stopped" in log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
