@@ -14,13 +14,19 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
     method: {name: nelder-mead, options: {initial_simplex_size: 0.05}}
     prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match
     budget: 60
-    max_step: 0.1                 # per set: fraction of each knob's half-range, or {knob: value}
+    max_step: 0.1                 # required: fraction of each knob's half-range, {knob: value},
+                                  # or the word unlimited (no step limit, deliberately)
     log: runs/sim.jsonl           # the run log (JSON lines)
     restore: initial              # or best (set the best observed point at the end)
     read_retries: 2
     objective_floor: null         # abort when a reading falls below this
 
-Relative paths (``prior``, ``log``) are taken relative to the run file's folder.
+Relative paths (``prior``, ``log``, ``lock_dir``) are taken relative to the run file's folder.
+
+A key given twice in a file is an error (YAML and JSON alike), not "the last one wins".
+``max_step`` has no default: a number, a per-knob mapping, or the word ``unlimited``; ``null``
+is refused. :meth:`RunConfig.warnings` names every step limit above 10 % of its knob's range
+(``pigp optimize`` prints them).
 
 Methods (``method.name``; ``method.options`` are checked against the builder's arguments):
 
@@ -116,7 +122,11 @@ class EpicsMachineConfig(_Section):
 
     PV names are ``setpoint_pvs[knob]`` (default ``knob + setpoint_suffix``) and
     ``readback_pvs[knob]`` (default ``knob + readback_suffix``); the objective PV is
-    ``objective.pv``. The timing and averaging fields are passed to the machine.
+    ``objective.pv``. The timing and averaging fields are passed to the machine. The readback
+    tolerance is ``tolerance`` (knob units) or ``tolerance_fraction`` (of each knob's range);
+    with neither, the machine's default (a millionth of the range: right for a simulated IOC,
+    too tight for a real magnet's noisy readback). ``stale_timeout`` (s, default 10): how long
+    a reading may wait for the objective PV's timestamp to advance.
     """
 
     kind: Literal["epics"]
@@ -126,9 +136,17 @@ class EpicsMachineConfig(_Section):
     readback_suffix: str = ":Curr1"
     settle_time: float = Field(0.5, ge=0.0)
     tolerance: float | None = Field(None, gt=0.0)
+    tolerance_fraction: float | None = Field(None, gt=0.0, lt=1.0)
     n_average: int = Field(1, ge=1)
     average_interval: float = Field(0.0, ge=0.0)
     timeout: float = Field(2.0, gt=0.0)
+    stale_timeout: float = Field(10.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _one_tolerance(self) -> EpicsMachineConfig:
+        if self.tolerance is not None and self.tolerance_fraction is not None:
+            raise ValueError("give tolerance (knob units) or tolerance_fraction, not both")
+        return self
 
 
 MachineConfig = Annotated[SimMachineConfig | EpicsMachineConfig, Field(discriminator="kind")]
@@ -167,8 +185,8 @@ class RunConfig(_Section):
         method: :class:`MethodConfig`.
         prior: a :class:`~pigp_torch.prior.PhysicsPrior` JSON file (required by ``pigp``).
         budget: evaluations, the start point included.
-        max_step: largest change of a knob per ``set``: a fraction of each knob's half-range or
-            ``{knob: absolute}`` (``None``: no limit; default 0.1).
+        max_step: largest change of a knob per ``set`` (required): a fraction of each knob's
+            half-range, ``{knob: absolute}``, or ``"unlimited"`` (no step limit).
         log: the run log to write.
         restore: ``"initial"`` (put the knobs back) or ``"best"`` (set the best observed point).
         read_retries: extra read attempts after an invalid reading (the loop's; the EPICS
@@ -176,6 +194,10 @@ class RunConfig(_Section):
         retry_interval: seconds before each extra read attempt.
         objective_floor: abort when a reading falls below this (``None``: no floor).
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
+        restore_attempts: attempts at restoring the knobs at the end (default 3).
+        restore_interval: seconds between those attempts (default 1).
+        lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
+            ``<tmp>/pigp-locks``; see :mod:`pigp_torch.runlock`).
     """
 
     machine: MachineConfig
@@ -184,15 +206,33 @@ class RunConfig(_Section):
     method: MethodConfig
     prior: Path | None = None
     budget: int = Field(ge=1)
-    max_step: float | dict[str, float] | None = 0.1
+    max_step: float | dict[str, float] | Literal["unlimited"]
     log: Path
     restore: Literal["initial", "best"] = "initial"
     read_retries: int = Field(2, ge=0)
     retry_interval: float = Field(0.1, ge=0.0)
     objective_floor: float | None = None
     readback_tolerance: float = Field(1e-3, ge=0.0)
+    restore_attempts: int = Field(3, ge=1, le=100)
+    restore_interval: float = Field(1.0, ge=0.0)
+    lock_dir: Path | None = None
 
     _prior = PrivateAttr(default=None)
+
+    @field_validator("max_step", mode="before")
+    @classmethod
+    def _explicit_max_step(cls, value):
+        if value is None:
+            raise ValueError(
+                "null is not a step limit: give a fraction of each knob's half-range (e.g. 0.1), "
+                "a {knob: value} mapping, or write unlimited to run without a step limit"
+            )
+        if isinstance(value, str) and value != "unlimited":
+            raise ValueError(
+                f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
+                "the word unlimited (no step limit)"
+            )
+        return value
 
     @field_validator("knobs")
     @classmethod
@@ -206,7 +246,7 @@ class RunConfig(_Section):
                 raise ValueError(f"knob {name!r}: lower bound {lo} must be below upper bound {hi}")
         return knobs
 
-    @field_validator("prior", "log")
+    @field_validator("prior", "log", "lock_dir")
     @classmethod
     def _resolve_paths(cls, path: Path | None, info: ValidationInfo) -> Path | None:
         return _resolve(path, info)
@@ -219,8 +259,8 @@ class RunConfig(_Section):
             bad = [k for k, v in self.max_step.items() if not v > 0]
             if bad:
                 raise ValueError(f"max_step: the limits of {bad} must be positive")
-        elif self.max_step is not None and not self.max_step > 0:
-            raise ValueError(f"max_step must be positive (or null), got {self.max_step}")
+        elif isinstance(self.max_step, float) and not self.max_step > 0:
+            raise ValueError(f"max_step must be positive (or unlimited), got {self.max_step}")
         m = self.machine
         if isinstance(m, SimMachineConfig):
             if self.objective.pv is not None:
@@ -260,10 +300,54 @@ class RunConfig(_Section):
         return torch.tensor(list(zip(*self.knobs.values(), strict=True)), dtype=DTYPE)
 
     def machine_max_step(self) -> float | torch.Tensor | None:
-        """``max_step`` as the machines take it: a fraction, or a ``d`` absolute tensor."""
+        """``max_step`` as the machines take it: a fraction, a ``d`` absolute tensor, or
+        ``None`` (unlimited)."""
         if isinstance(self.max_step, dict):
             return torch.tensor([self.max_step[n] for n in self.knobs], dtype=DTYPE)
+        if self.max_step == "unlimited":
+            return None
         return self.max_step
+
+    def warnings(self) -> list[str]:
+        """Safety warnings (no error): no step limit, or a knob's limit above 10 % of its
+        range (one line naming every such knob)."""
+        if self.max_step == "unlimited":
+            return ["max_step: unlimited: no step limit, a proposal is reached in one set"]
+        from pigp_torch.machine.base import max_step_tensor
+
+        bounds = self.bounds()
+        width = bounds[1] - bounds[0]
+        limit = max_step_tensor(self.machine_max_step(), bounds)
+        big = [
+            f"{n} {float(limit[i]):.4g} ({100 * float(limit[i] / width[i]):.0f} %)"
+            for i, n in enumerate(self.knobs)
+            if float(limit[i]) > 0.1 * float(width[i])
+        ]
+        if not big:
+            return []
+        return [f"max_step above 10 % of the knob's range: {', '.join(big)}"]
+
+    def pv_names(self) -> list[str]:
+        """Every PV the run uses (setpoints, readbacks, objective); empty for the simulator."""
+        m = self.machine
+        if not isinstance(m, EpicsMachineConfig):
+            return []
+        names = self.knob_names
+        sp = m.setpoint_pvs or {n: f"{n}{m.setpoint_suffix}" for n in names}
+        rb = m.readback_pvs or {n: f"{n}{m.readback_suffix}" for n in names}
+        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv)]
+
+    def safety_lines(self) -> list[str]:
+        """The safety limits of the run, one line each (printed when a run is resumed from the
+        log header alone)."""
+        floor = "none" if self.objective_floor is None else f"{self.objective_floor:g}"
+        box = ", ".join(f"{n} [{lo:g}, {hi:g}]" for n, (lo, hi) in self.knobs.items())
+        return [
+            f"knobs and bounds: {box}",
+            f"max_step: {self.max_step}",
+            f"restore: {self.restore}; objective floor: {floor}; read retries: "
+            f"{self.read_retries}; readback tolerance: {self.readback_tolerance:g} of the range",
+        ]
 
     def get_prior(self):
         """The loaded :class:`~pigp_torch.prior.PhysicsPrior` (``None`` without a prior file)."""
@@ -375,6 +459,11 @@ def _format_errors(err: ValidationError, data: Any) -> list[str]:
                 line += f"; allowed: {', '.join(allowed)}"
         elif e["type"] == "missing":
             line = f"missing key {where!r}"
+            if where == "max_step":
+                line += (
+                    " (a fraction of each knob's half-range, a {knob: value} mapping, or "
+                    "unlimited: the step limit must be given explicitly)"
+                )
         else:
             line = f"{where}: {msg}" if where else msg
         lines.append(line)
@@ -406,27 +495,67 @@ def validate_config(data: Any, *, base_dir: str | Path | None = None, source: st
         ) from None
 
 
+def _no_duplicates_json(pairs):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise ConfigError(f"duplicate key {key!r}; a key may appear only once")
+        out[key] = value
+    return out
+
+
+def _unique_key_loader():
+    """A ``yaml.SafeLoader`` subclass that refuses a mapping key given twice."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        pass
+
+    def construct_mapping(loader, node, deep=False):
+        loader.flatten_mapping(node)
+        seen = {}
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ConfigError(
+                    f"duplicate key {key!r} (line {key_node.start_mark.line + 1}, first given on "
+                    f"line {seen[key] + 1}); a key may appear only once"
+                )
+            seen[key] = key_node.start_mark.line
+        return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+    UniqueKeyLoader.add_constructor(
+        yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping
+    )
+    return UniqueKeyLoader
+
+
 def load_config(path: str | Path) -> RunConfig:
     r"""Read a run file (``.json``: JSON, anything else: YAML, safe loader) and validate it.
 
-    Relative ``prior`` and ``log`` paths are taken relative to the file's folder.
+    Relative ``prior``, ``log`` and ``lock_dir`` paths are taken relative to the file's folder.
 
     Raises:
         FileNotFoundError: no such file.
-        ConfigError: unreadable or invalid configuration (every problem, one per line).
+        ConfigError: unreadable or invalid configuration (every problem, one per line), or a key
+            given twice.
     """
     path = Path(path)
     text = path.read_text(encoding="utf-8")
     if path.suffix.lower() == ".json":
         try:
-            data = json.loads(text)
+            data = json.loads(text, object_pairs_hook=_no_duplicates_json)
         except json.JSONDecodeError as err:
             raise ConfigError(f"{path}: not valid JSON: {err}") from err
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
     else:
         import yaml
 
         try:
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_unique_key_loader())  # a SafeLoader subclass
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
         except yaml.YAMLError as err:
             raise ConfigError(f"{path}: not valid YAML: {err}") from err
     return validate_config(data, base_dir=path.parent.absolute(), source=str(path))
@@ -518,6 +647,9 @@ def _ml2_factory(bounds: torch.Tensor, opts: dict):
 def build_machine(config: RunConfig):
     r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
     names, bounds, m = config.knob_names, config.bounds(), config.machine
+    tolerance = m.tolerance if isinstance(m, EpicsMachineConfig) else None
+    if isinstance(m, EpicsMachineConfig) and m.tolerance_fraction is not None:
+        tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
     if isinstance(m, SimMachineConfig):
         from pigp_torch.machine import SimulatedMachine
         from pigp_torch.simulation import Spear3Coupling
@@ -556,10 +688,11 @@ def build_machine(config: RunConfig):
         setpoint_suffix=m.setpoint_suffix,
         readback_suffix=m.readback_suffix,
         settle_time=m.settle_time,
-        tolerance=m.tolerance,
+        tolerance=tolerance,
         n_average=m.n_average,
         average_interval=m.average_interval,
         timeout=m.timeout,
+        stale_timeout=m.stale_timeout,
         max_step=config.machine_max_step(),
         read_retries=0,  # the loop retries (config.read_retries), for every machine alike
     )
@@ -601,13 +734,16 @@ class RunSetup:
         return self.config.method.name
 
     def header(self) -> dict:
-        """Header entries of the run log: configuration, prior provenance, knobs, bounds."""
+        """Header entries of the run log: configuration (and its :func:`config_digest`),
+        prior provenance, knobs, bounds."""
+        dump = self.config.model_dump(mode="json")
         return {
             "knob_names": self.config.knob_names,
             "method": self.method,
             "bounds": self.config.bounds().tolist(),
             "maximize": self.config.objective.maximize,
-            "config": self.config.model_dump(mode="json"),
+            "config": dump,
+            "config_sha256": config_digest(dump),
             "prior": self.prior_info,
         }
 
@@ -635,6 +771,8 @@ class RunSetup:
             log=log,
             resume=resume,
             readback_tol=c.readback_tolerance,
+            restore_attempts=c.restore_attempts,
+            restore_interval=c.restore_interval,
         )
 
 
@@ -681,11 +819,39 @@ def check_resume(config: RunConfig, records) -> None:
             )
 
 
+def config_digest(dump: dict) -> str:
+    """Hex sha256 of a configuration dump (``model_dump(mode="json")``), canonical JSON."""
+    import hashlib
+
+    text = json.dumps(dump, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def logged_config(records) -> RunConfig:
-    """The configuration stored in a run log's header, validated again (prior file included)."""
+    r"""The configuration stored in a run log's header, verified and validated again.
+
+    The header's ``config_sha256`` must be the :func:`config_digest` of its ``config`` (an
+    edited header — a doubled step limit — is refused); then the configuration is validated
+    as a run file would be (prior file included).
+
+    Raises:
+        ConfigError: no configuration, no digest (a log of an older version: give the run file
+            with ``--config``), a digest that does not match, or an invalid configuration.
+    """
     data = records.header.get("config")
     if not data:
         raise ConfigError(f"{records.path}: the log holds no configuration")
+    logged = records.header.get("config_sha256")
+    if not logged:
+        raise ConfigError(
+            f"{records.path}: the log header has no configuration digest (config_sha256); "
+            "give the run file with --config to continue it"
+        )
+    if config_digest(data) != logged:
+        raise ConfigError(
+            f"{records.path}: the configuration in the log header does not match its sha256 "
+            f"(the header was edited); give the run file with --config to continue it"
+        )
     return validate_config(data, source=f"{records.path} (logged configuration)")
 
 

@@ -27,23 +27,45 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    ``read_retries`` times, ``retry_interval`` seconds apart; then the run aborts with
    ``ReadError``. (Give a machine that retries on its own, like ``EpicsMachine``, zero retries
    of its own, or the two counts multiply.)
+   *Readings checked against the machine's state* (``check_readings``, default on): the knob
+   readbacks (``get()``) must lie within the readback tolerance of the setting before *and*
+   after each reading (the machine's ``tolerance`` when it has one, else ``readback_tol`` of
+   each range); a machine with ``setpoints()`` must show the same setpoints after the reading as
+   before, and one with a ``disconnections`` counter must not have lost a connection during it.
+   A reading that fails a check is discarded (a ``discarded`` record in the log, with the
+   reason and the value) and taken again if the knobs are (still) at the setting, within the
+   same ``read_retries``; if the knobs are no longer at the setting (an IOC reboot, another
+   client) the run aborts with :class:`~pigp_torch.machine.errors.MachineError`. Freshness of
+   the objective (timestamps that must advance) is the machine's check (``EpicsMachine``
+   raises a ``StaleReadingError``, a ``ReadError``); what the machine reports about a reading
+   (``last_reading``) is stored with the evaluation.
 4. *Objective floor.* With ``objective_floor`` set, a valid reading below it is recorded, then the
    run aborts with :class:`RunAborted` (the beam may be gone or being lost).
-5. *Restore.* The knobs found at the start (``get()``) are put back, by a ramp, when the run ends
-   with any exception (a machine error, a refused setting, a bug, ``KeyboardInterrupt`` — Ctrl-C —
-   or SIGTERM), and at the end of a completed run unless ``restore="best"`` (the best observed
+5. *Restore.* The initial knobs — those found at the start (``get()``), or on a resume those
+   logged by the run's *first* start — are put back, by a ramp, when the run ends with any
+   exception (a machine error, a refused setting, a bug, ``KeyboardInterrupt`` — Ctrl-C — SIGTERM
+   or SIGHUP), and at the end of a completed run unless ``restore="best"`` (the best observed
    point is set) or ``restore="none"``. The target is verified by readback: ``get()`` must be
-   within ``readback_tol`` of it, else :class:`~pigp_torch.machine.errors.MachineError`. While
-   restoring, SIGINT/SIGTERM are deferred (a second one abandons the restore).
-6. *Signals.* With ``handle_signals`` (default) SIGTERM raises :class:`Terminated`, a
-   ``KeyboardInterrupt``, so it takes the Ctrl-C path: restore, then re-raise. The handler is
-   installed only in the main thread and the previous one is always put back.
+   within ``readback_tol`` of it. A failed attempt is retried, ``restore_attempts`` in all,
+   ``restore_interval`` seconds apart (each attempt ramps from where the knobs then are); the
+   end record says whether the knobs were restored and holds the last setpoint written
+   (``last_setpoint``). While restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one
+   abandons the restore).
+6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
+   dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
+   restore, then re-raise. The handlers are installed only in the main thread and the previous
+   ones are always put back.
+7. *Intent records.* With a log, every ``set`` the loop sends is preceded by an ``intent``
+   record (the setting about to be written, the purpose, the step), written and fsynced before
+   the write: after a crash (SIGKILL, power cut) the log holds the last commanded setting.
 
 **Run log and resume.** With ``log`` every evaluation is appended (and fsynced) before the next
 step, framed by a ``start`` and an ``end`` record (status, reason, where the knobs were put
 back and their readback); see :mod:`pigp_torch.runlog`. ``resume=`` continues a logged run: the
 optimizer is rebuilt with :func:`~pigp_torch.runlog.replay` and the run goes on at the next step
-until ``budget`` evaluations in all.
+until ``budget`` evaluations in all; the knobs are restored to the initial knobs of the logged
+run's first start (not to where a crash left them), and the new start record notes where the
+knobs were found (``found_knobs``).
 """
 
 from __future__ import annotations
@@ -64,6 +86,7 @@ from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch.machine.base import Machine, check_setting, max_step_tensor
 from pigp_torch.machine.errors import MachineError, ReadError
 from pigp_torch.runlog import RunLog, RunRecords, evaluation_rows, replay
+from pigp_torch.runlog import utc_now as _utc_now
 
 RESTORE_MODES = ("initial", "best", "none")
 MOVE_MODES = ("set", "ramp")
@@ -78,7 +101,20 @@ class RunAborted(RuntimeError):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM arrived during a run; handled like Ctrl-C (knobs restored, then re-raised)."""
+    """SIGTERM or SIGHUP arrived during a run; handled like Ctrl-C (knobs restored, then
+    re-raised).
+
+    Attributes:
+        signum: the signal number (``signal.SIGTERM`` or ``signal.SIGHUP``).
+    """
+
+    def __init__(self, message: str = "", signum: int = signal.SIGTERM) -> None:
+        super().__init__(message)
+        self.signum = int(signum)
+
+
+#: Signals that end a run like SIGTERM (where the platform has them).
+_TERMINATING = tuple(s for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None)
 
 
 def _knob_columns(knob_names, objective, d: int) -> list[str]:
@@ -97,10 +133,10 @@ def _knob_columns(knob_names, objective, d: int) -> list[str]:
 
 # ---------------------------------------------------------------------------------- signals
 class _SignalGuard:
-    r"""SIGTERM -> :class:`Terminated` during a run; SIGINT/SIGTERM deferred while restoring.
+    r"""SIGTERM/SIGHUP -> :class:`Terminated` during a run; all three deferred while restoring.
 
     Installed for the whole of :func:`optimize` (main thread only; otherwise a no-op), the
-    previous handlers are put back on exit. While ``deferring`` is false, SIGTERM raises
+    previous handlers are put back on exit. While ``deferring`` is false, SIGTERM or SIGHUP raise
     :class:`Terminated` and SIGINT goes to the previous handler (Python's default raises
     ``KeyboardInterrupt``; an ignored SIGINT stays ignored). While ``deferring`` is true (the
     restore and the end record), signals are only recorded in ``deferred``; a second one raises
@@ -108,7 +144,7 @@ class _SignalGuard:
     acts only when the block ends.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, *_TERMINATING)
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = bool(enabled) and threading.current_thread() is threading.main_thread()
@@ -131,8 +167,8 @@ class _SignalGuard:
         self._act(signum, frame)
 
     def _act(self, signum, frame) -> None:
-        if signum == signal.SIGTERM:
-            raise Terminated(f"received {signal.Signals(signum).name}")
+        if signum in _TERMINATING:
+            raise Terminated(f"received {signal.Signals(signum).name}", signum)
         previous = self._previous.get(signum)
         if callable(previous):
             previous(signum, frame)
@@ -191,11 +227,12 @@ def effective_max_step(machine, bounds: torch.Tensor, max_step) -> torch.Tensor 
     return out
 
 
-def _move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool) -> int:
+def _move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool, on_set=None) -> int:
     r"""Send ``target`` to ``machine``: one checked ``set``, or a checked ramp; returns the sets.
 
     Every setting passes :func:`check_setting` (bounds; step from the previous setting sent, the
-    first measured from ``machine.get()``) before ``machine.set``.
+    first measured from ``machine.get()``) before ``machine.set``; ``on_set(x, k, n)`` (if given)
+    is called just before the ``k``-th of ``n`` sets (the intent record).
     """
     target = check_setting(target, bounds)
     previous = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
@@ -209,6 +246,8 @@ def _move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool) -> int:
         # intermediate points are convex combinations; the clamp only removes round-off
         x = torch.minimum(torch.maximum(x, bounds[0]), bounds[1])
         x = check_setting(x, bounds, current=previous, max_step=limit)
+        if on_set is not None:
+            on_set(x, k, n)
         machine.set(x.clone())
         previous = x
     return n
@@ -244,6 +283,86 @@ def _read(measure: Callable[[], float], retries: int, interval: float) -> tuple[
     raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
 
 
+def _machine_state(machine) -> dict:
+    """What a reading is checked against: readbacks, setpoints and the disconnection count
+    (the latter two only where the machine offers them)."""
+    state = {"readback": torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)}
+    setpoints = getattr(machine, "setpoints", None)
+    if callable(setpoints):
+        state["setpoint"] = torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1)
+    if hasattr(machine, "disconnections"):
+        state["disconnections"] = int(machine.disconnections)
+    return state
+
+
+def _off_setting(state: dict, x: torch.Tensor, tol: torch.Tensor) -> list[int]:
+    return ((state["readback"] - x).abs() > tol).nonzero().flatten().tolist()
+
+
+def _checked_read(
+    machine, x: torch.Tensor, tol: torch.Tensor, retries: int, interval: float, on_discard
+) -> tuple[float, int]:
+    r"""A valid reading of ``machine`` at setting ``x``, checked against the machine's state.
+
+    Before each attempt the readbacks must be within ``tol`` of ``x`` (else ``MachineError``);
+    after it, the readbacks must still be there, the setpoints unchanged and no connection lost.
+    A reading that fails the after-check is reported to ``on_discard(reason, y)`` and taken
+    again (within the ``retries + 1`` attempts) if the knobs are still at ``x``; otherwise
+    ``MachineError``. Invalid readings are retried as in :func:`_read`.
+
+    Returns:
+        ``(y, attempts)``.
+
+    Raises:
+        MachineError: the knobs are not (or no longer) at ``x``.
+        ReadError: no valid, consistent reading in ``retries + 1`` attempts.
+    """
+    problems = []
+    for attempt in range(1, retries + 2):
+        if attempt > 1 and interval > 0:
+            time.sleep(interval)
+        before = _machine_state(machine)
+        off = _off_setting(before, x, tol)
+        if off:
+            raise MachineError(
+                f"knobs {off} are not at the setting before the reading: readback "
+                f"{before['readback'][off].tolist()}, setting {x[off].tolist()}"
+            )
+        try:
+            y = float(machine.read())
+        except (ReadError, TimeoutError) as err:
+            problems.append(f"{type(err).__name__}: {err}")
+            continue
+        if not math.isfinite(y):
+            problems.append(f"non-finite reading {y}")
+            continue
+        after = _machine_state(machine)
+        reasons = []
+        off = _off_setting(after, x, tol)
+        if off:
+            reasons.append(
+                f"readbacks of knobs {off} left the setting during the reading "
+                f"(now {after['readback'][off].tolist()}, setting {x[off].tolist()})"
+            )
+        if "setpoint" in before and not torch.equal(before["setpoint"], after["setpoint"]):
+            changed = (before["setpoint"] != after["setpoint"]).nonzero().flatten().tolist()
+            reasons.append(
+                f"setpoints of knobs {changed} changed during the reading "
+                f"({before['setpoint'][changed].tolist()} -> {after['setpoint'][changed].tolist()})"
+            )
+        if after.get("disconnections", 0) != before.get("disconnections", 0):
+            n = after["disconnections"] - before["disconnections"]
+            reasons.append(f"{n} channel disconnection(s) during the reading")
+        if not reasons:
+            return y, attempt
+        reason = "; ".join(reasons)
+        on_discard(reason, y)
+        problems.append(f"discarded: {reason}")
+        if off:
+            raise MachineError(f"reading discarded and the knobs moved: {reason}")
+    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+
+
 # ---------------------------------------------------------------------------------- the loop
 def optimize(
     objective,
@@ -265,6 +384,9 @@ def optimize(
     resume: RunRecords | list[dict] | None = None,
     handle_signals: bool = True,
     readback_tol: float = 1e-3,
+    restore_attempts: int = 3,
+    restore_interval: float = 1.0,
+    check_readings: bool = True,
 ) -> pd.DataFrame:
     r"""Run an ask/tell optimizer on a machine or a function for ``budget`` evaluations.
 
@@ -274,7 +396,9 @@ def optimize(
 
     On a :class:`~pigp_torch.machine.base.Machine` (``set`` then ``read``) the safety rules of
     :mod:`pigp_torch.loop` apply: checked settings, ramps within the step limit, bounded read
-    retries, the objective floor, and the restore of the knobs found at the start (``get()``):
+    retries, readings checked against the machine's state, the objective floor, intent records,
+    and the restore of the initial knobs (found at the start with ``get()``; on a resume, those
+    of the logged run's first start):
 
     * ``restore="initial"`` (default, the safe choice): the initial knobs are set back;
     * ``restore="best"``: the best *observed* point is set (the loop's records, in the optimizer's
@@ -308,10 +432,13 @@ def optimize(
             (or, when resuming, the log is continued) and closed at the end.
         resume: the records of a logged run (:func:`~pigp_torch.runlog.read_log`) or its
             evaluation records; ``optimizer`` must be fresh and built as in that run.
-        handle_signals: turn SIGTERM into :class:`Terminated` during the run, and defer
-            SIGINT/SIGTERM while restoring (main thread only).
+        handle_signals: turn SIGTERM and SIGHUP into :class:`Terminated` during the run, and
+            defer SIGINT/SIGTERM/SIGHUP while restoring (main thread only).
         readback_tol: allowed ``|get() - target|`` after a restore, a fraction of each knob's
-            range.
+            range (and around a reading, for a machine without a ``tolerance`` of its own).
+        restore_attempts: attempts at the restore (ramp and readback check, >= 1; default 3).
+        restore_interval: seconds between those attempts (>= 0; default 1).
+        check_readings: check every reading of a machine against its state (rule 3).
 
     Returns:
         a DataFrame with one row per evaluation and columns ``step`` (0..budget-1), one float64
@@ -322,7 +449,8 @@ def optimize(
         ValueError: bad arguments, a refused setting, or nothing left to resume.
         ReadError: no valid reading after the retries.
         RunAborted: a reading below ``objective_floor``.
-        MachineError: from the machine, or a failed readback check after the restore.
+        MachineError: from the machine, a reading taken while the knobs moved, or a failed
+            readback check after the restore (the end record then has ``restored`` false).
         pigp_torch.runlog.ReplayError: the resumed log does not match the optimizer.
     """
     if int(budget) != budget or budget < 1:
@@ -342,6 +470,11 @@ def optimize(
         raise ValueError(f"objective_floor must be finite or None, got {objective_floor}")
     if not (0.0 <= float(readback_tol) < float("inf")):
         raise ValueError(f"readback_tol must be finite and >= 0, got {readback_tol}")
+    if int(restore_attempts) != restore_attempts or restore_attempts < 1:
+        raise ValueError(f"restore_attempts must be an integer >= 1, got {restore_attempts}")
+    restore_attempts = int(restore_attempts)
+    if not (0.0 <= float(restore_interval) < float("inf")):
+        raise ValueError(f"restore_interval must be finite and >= 0, got {restore_interval}")
     is_machine = isinstance(objective, Machine)
     if not is_machine and not callable(objective):
         raise ValueError("objective must be a Machine or a callable x -> float")
@@ -359,7 +492,16 @@ def optimize(
                 "raise the budget to continue the run"
             )
 
-    x_initial = torch.as_tensor(objective.get(), dtype=DTYPE).clone() if is_machine else None
+    x_found = torch.as_tensor(objective.get(), dtype=DTYPE).clone() if is_machine else None
+    x_initial = x_found
+    logged_initial = _logged_initial_knobs(resume)
+    if is_machine and logged_initial is not None:
+        if logged_initial.shape != x_found.shape:
+            raise ValueError(
+                f"the log's initial knobs have {logged_initial.numel()} values, the machine "
+                f"{x_found.numel()}"
+            )
+        x_initial = logged_initial
     if resume is None:
         if x0 is None:
             if not is_machine:
@@ -383,11 +525,35 @@ def optimize(
         if bounds.shape[1] != d:
             raise ValueError(f"the machine has {bounds.shape[1]} knobs, the optimizer {d}")
         limit = effective_max_step(objective, bounds, max_step)
+        if x_initial is not x_found:
+            try:
+                check_setting(x_initial, bounds)
+            except ValueError as err:
+                raise ValueError(f"the logged initial knobs are not allowed: {err}") from err
+        machine_tol = getattr(objective, "tolerance", None)
+        if machine_tol is not None:
+            read_tol = torch.as_tensor(machine_tol, dtype=DTYPE).expand(d).clone()
+        else:
+            read_tol = float(readback_tol) * (bounds[1] - bounds[0])
+    sent = {"last": None, "step": None, "purpose": "evaluation"}
 
-    def evaluate(x: torch.Tensor, ramp: bool) -> tuple[float, int]:
+    def on_set(x: torch.Tensor, k: int, n: int) -> None:
+        if log is not None:
+            log.log_intent(x, purpose=sent["purpose"], step=sent["step"], part=k, parts=n)
+        sent["last"] = x.tolist()
+
+    def evaluate(x: torch.Tensor, ramp: bool, step: int) -> tuple[float, int]:
         if is_machine:
-            _move(objective, x, bounds, limit, ramp=ramp)
-            return _read(objective.read, read_retries, retry_interval)
+            sent["step"], sent["purpose"] = step, "evaluation"
+            _move(objective, x, bounds, limit, ramp=ramp, on_set=on_set)
+            if not check_readings:
+                return _read(objective.read, read_retries, retry_interval)
+
+            def on_discard(reason: str, y: float) -> None:
+                if log is not None:
+                    log.write("discarded", step=step, y=y, reason=reason, time=_utc_now())
+
+            return _checked_read(objective, x, read_tol, read_retries, retry_interval, on_discard)
         return _read(lambda: objective(x), read_retries, retry_interval)
 
     own_log = log is not None and not isinstance(log, RunLog)
@@ -423,6 +589,8 @@ def optimize(
                 moves=moves,
                 log=log,
                 x_initial=x_initial,
+                x_found=x_found,
+                reading_info=(lambda: getattr(objective, "last_reading", None)),
                 callback=callback,
                 progress=progress,
                 objective_floor=objective_floor,
@@ -436,18 +604,35 @@ def optimize(
 
         best = _best(rows, names, maximize)
         restored_to, final_knobs, restore_error = "none", None, None
+        restored, attempts_made, attempt_errors = True, 0, []
         if is_machine:
             # initial knobs after any failure; initial / best / none after a completed run
             mode = restore if error is None else ("none" if restore == "none" else "initial")
             if mode != "none":
                 target = x_initial if mode == "initial" else torch.tensor(best["x"], dtype=DTYPE)
-                try:
-                    _move(objective, target, bounds, limit, ramp=True)
-                    _verify_readback(objective, target, bounds, float(readback_tol))
-                    restored_to = mode
-                except BaseException as err:  # reported below, never hides the run's error
-                    restore_error = err
-                    restored_to = f"{mode} (failed)"
+                sent["purpose"], sent["step"] = f"restore {mode}", None
+                for attempt in range(1, restore_attempts + 1):
+                    attempts_made = attempt
+                    try:
+                        _move(objective, target, bounds, limit, ramp=True, on_set=on_set)
+                        _verify_readback(objective, target, bounds, float(readback_tol))
+                        restore_error = None
+                        break
+                    except KeyboardInterrupt as err:  # a second signal: abandon the restore
+                        restore_error = err
+                        attempt_errors.append(f"{type(err).__name__}: {err}")
+                        break
+                    except Exception as err:  # reported below, never hides the run's error
+                        restore_error = err
+                        attempt_errors.append(f"{type(err).__name__}: {err}")
+                        if attempt < restore_attempts and restore_interval > 0:
+                            try:
+                                time.sleep(float(restore_interval))
+                            except KeyboardInterrupt as err2:
+                                restore_error = err2
+                                break
+                restored = restore_error is None
+                restored_to = mode if restored else f"{mode} (failed)"
             try:
                 final_knobs = torch.as_tensor(objective.get(), dtype=DTYPE).reshape(-1).tolist()
             except Exception as err:  # the readback itself failed: say so in the log
@@ -460,6 +645,11 @@ def optimize(
             try:
                 end = {"restored_to": restored_to, "final_knobs": final_knobs}
                 end.update(n_evaluations=len(rows), best=best)
+                if is_machine:
+                    end.update(restored=restored, last_setpoint=sent["last"])
+                    end.update(restore_attempts=attempts_made)
+                    if attempt_errors:
+                        end["restore_errors"] = attempt_errors
                 if guard.deferred:
                     end["deferred_signals"] = list(guard.deferred)
                 if error is not None and restore_error is not None:
@@ -478,7 +668,8 @@ def optimize(
     if error is not None:
         if restore_error is not None:
             warnings.warn(
-                f"could not restore the initial knobs after a failure: {restore_error!r}",
+                f"could not restore the initial knobs after a failure ({attempts_made} "
+                f"attempt(s)): {restore_error!r}; last setpoint written: {sent['last']}",
                 stacklevel=2,
             )
         raise error
@@ -492,6 +683,17 @@ def optimize(
         )
     table = pd.DataFrame(rows, columns=["step", *names, "y", "method", "ask_time_s", "eval_time_s"])
     return table.astype({"step": "int64", **dict.fromkeys(names, "float64"), "y": "float64"})
+
+
+def _logged_initial_knobs(resume) -> torch.Tensor | None:
+    """The initial knobs of a resumed run's first start record (``None`` if not logged)."""
+    if not isinstance(resume, RunRecords):
+        return None
+    for start in resume.starts:
+        knobs = start.get("initial_knobs")
+        if knobs is not None:
+            return torch.tensor([float(v) for v in knobs], dtype=DTYPE)
+    return None
 
 
 def _best(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
@@ -516,6 +718,8 @@ def _run_steps(
     moves,
     log,
     x_initial,
+    x_found,
+    reading_info,
     callback,
     progress,
     objective_floor,
@@ -523,7 +727,10 @@ def _run_steps(
 ) -> None:
     """Steps ``first .. budget-1`` of :func:`optimize`; appends to ``rows`` as it goes."""
     if log is not None:
-        log.log_start(x_initial, budget=budget, first_step=first)
+        extra = {}
+        if x_found is not None and x_found is not x_initial:
+            extra["found_knobs"] = x_found.tolist()
+        log.log_start(x_initial, budget=budget, first_step=first, **extra)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -540,7 +747,8 @@ def _run_steps(
                 ask_time = time.perf_counter() - t0
             t0 = time.perf_counter()
             # the start point and the first point of a resumed run are always ramped to
-            y, reads = evaluate(x, ramp=(moves == "ramp" or step == first))
+            y, reads = evaluate(x, ramp=(moves == "ramp" or step == first), step=step)
+            info = reading_info()
             eval_time = time.perf_counter() - t0
             row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
             row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
@@ -555,6 +763,7 @@ def _run_steps(
                         t_read=time.time(),
                         ask_time_s=ask_time,
                         eval_time_s=eval_time,
+                        **({"reading": info} if isinstance(info, dict) else {}),
                     )
                 rows.append(row)
             t0 = time.perf_counter()

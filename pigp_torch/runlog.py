@@ -8,12 +8,24 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
   sha256 of its bytes, its ``provenance`` metadata).
 * ``start`` (one per session: the first run and each resume): ``time``, ``initial_knobs`` (the
   knobs found on the machine, where they are put back), ``budget``, ``first_step``.
+* ``intent`` (one before every ``set`` the loop sends, fsynced before the write): ``x`` (the
+  setting about to be written), ``purpose`` (``"evaluation"`` or ``"restore initial"`` /
+  ``"restore best"``), ``step`` (the evaluation it serves, ``null`` for a restore), ``part`` /
+  ``parts`` (its place in a ramp). After a crash the last one is the last commanded setting.
+* ``discarded`` (a reading thrown away because the machine's state changed during it): ``step``,
+  ``y``, ``reason``, ``time``.
 * ``evaluation`` (one per measurement): ``step`` (0, 1, ...), ``x`` (knob values in
   ``knob_names`` order), ``y``, ``reads`` (read attempts it took), ``t_set`` / ``t_read`` (UNIX
-  times before the move and after the reading), ``ask_time_s`` and ``eval_time_s``.
+  times before the move and after the reading), ``ask_time_s`` and ``eval_time_s``, and
+  ``reading`` (what the machine reports about the reading, e.g. the objective PV's timestamps).
 * ``end`` (one per session that ended in Python): ``status`` (``"completed"``,
   ``"interrupted"``, ``"aborted"`` or ``"failed"``), ``reason``, ``restored_to``,
-  ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations``.
+  ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations`` and, on a machine,
+  ``restored`` (whether the knobs were put back), ``last_setpoint`` (the last setting written)
+  and ``restore_attempts``.
+
+While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.runlock.log_lock`,
+``<log>.lock``): a second writer is refused with :class:`~pigp_torch.runlock.LockHeld`.
 
 Each record is written with one ``write``, then ``flush`` and ``os.fsync``: a crash (even a
 power cut after the call returned) loses no completed evaluation. A last line cut short by a crash
@@ -47,8 +59,10 @@ from pigp_torch._utils import DTYPE
 
 #: Tag of the header record, checked on read.
 FORMAT_TAG = "pigp_torch.RunLog"
-FORMAT_VERSION = 1
-RECORD_TYPES = ("header", "start", "evaluation", "end")
+FORMAT_VERSION = 2
+#: Versions :func:`read_log` accepts (version 1 had no intent or discarded records).
+READABLE_VERSIONS = (1, 2)
+RECORD_TYPES = ("header", "start", "evaluation", "end", "intent", "discarded")
 END_STATUSES = ("completed", "interrupted", "aborted", "failed")
 
 
@@ -93,16 +107,22 @@ class RunLog:
         header: the header record.
     """
 
-    def __init__(self, path: str | Path, header: dict, handle) -> None:
-        # use create() / append(); this only wires an open handle
+    def __init__(self, path: str | Path, header: dict, handle, lock=None) -> None:
+        # use create() / append(); this only wires an open handle (and the lock it holds)
         self.path = Path(path)
         self.header = header
         self._f = handle
+        self._lock = lock
 
     # -- opening ---------------------------------------------------------------------------------
     @classmethod
     def create(
-        cls, path: str | Path, header: Mapping[str, Any] | None = None, *, overwrite: bool = False
+        cls,
+        path: str | Path,
+        header: Mapping[str, Any] | None = None,
+        *,
+        overwrite: bool = False,
+        lock=True,
     ) -> RunLog:
         r"""Start a new log at ``path`` with a header record.
 
@@ -110,10 +130,19 @@ class RunLog:
         the entries of ``header`` (which must be JSON-serializable; it should include
         ``knob_names``).
 
+        Args:
+            path: the new log.
+            header: entries of the header record.
+            overwrite: replace an existing file.
+            lock: ``True`` (default) takes the log's lock, held until :meth:`close`; an
+                acquired :class:`~pigp_torch.runlock.RunLock` is adopted (released at close);
+                ``False``: no lock.
+
         Raises:
             FileExistsError: ``path`` exists and ``overwrite`` is false (a log is never clobbered
                 by accident: continue it with :meth:`append`).
             ValueError: ``header`` is not JSON-serializable or uses a reserved key.
+            pigp_torch.runlock.LockHeld: another process holds the log's lock.
         """
         path = Path(path)
         extra = dict(header or {})
@@ -129,33 +158,52 @@ class RunLog:
             **extra,
         }
         line = _dumps(record)  # fail before creating the file
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"run log {path} exists: continue it with RunLog.append")
         if path.parent != Path():
             path.parent.mkdir(parents=True, exist_ok=True)
-        handle = open(path, "w" if overwrite else "x", encoding="utf-8")
-        log = cls(path, record, handle)
+        held = _take_lock(path, lock)
+        try:
+            handle = open(path, "w" if overwrite else "x", encoding="utf-8")
+        except BaseException:
+            if held is not None and held is not lock:
+                held.release()
+            raise
+        log = cls(path, record, handle, held)
         log._write_line(line)
         _fsync_dir(path.parent)
         return log
 
     @classmethod
-    def append(cls, path: str | Path) -> RunLog:
+    def append(cls, path: str | Path, *, lock=True) -> RunLog:
         r"""Open an existing log to continue it (resume).
 
-        A last line cut short by a crash during a write (no final newline) is removed first.
+        The log's lock is taken first (``lock`` as in :meth:`create`); then a last line cut
+        short by a crash during a write (no final newline) is removed.
 
         Raises:
             FileNotFoundError: no such file.
             ValueError: the file is not a run log.
+            pigp_torch.runlock.LockHeld: another process holds the log's lock.
         """
         path = Path(path)
-        records = read_log(path)  # validates the header
-        with open(path, "rb+") as f:
-            data = f.read()
-            if data and not data.endswith(b"\n"):
-                f.truncate(data.rfind(b"\n") + 1)
-                f.flush()
-                os.fsync(f.fileno())
-        return cls(path, records.header, open(path, "a", encoding="utf-8"))
+        if not path.is_file():
+            raise FileNotFoundError(f"no run log {path}")
+        held = _take_lock(path, lock)
+        try:
+            records = read_log(path)  # validates the header
+            with open(path, "rb+") as f:
+                data = f.read()
+                if data and not data.endswith(b"\n"):
+                    f.truncate(data.rfind(b"\n") + 1)
+                    f.flush()
+                    os.fsync(f.fileno())
+            handle = open(path, "a", encoding="utf-8")
+        except BaseException:
+            if held is not None and held is not lock:
+                held.release()
+            raise
+        return cls(path, records.header, handle, held)
 
     # -- writing ---------------------------------------------------------------------------------
     def _write_line(self, line: str) -> None:
@@ -184,6 +232,17 @@ class RunLog:
             **fields,
         )
 
+    def log_intent(self, x, *, purpose: str, step: int | None, **fields) -> dict:
+        """Record the setting about to be written (before the write), its purpose and step."""
+        return self.write(
+            "intent",
+            time=utc_now(),
+            x=_floats(x),
+            purpose=str(purpose),
+            step=None if step is None else int(step),
+            **fields,
+        )
+
     def log_evaluation(self, step: int, x, y: float, **fields) -> dict:
         """Record one evaluation: ``step``, ``x`` (knob order of the header), ``y`` and extras."""
         return self.write("evaluation", step=int(step), x=_floats(x), y=float(y), **fields)
@@ -195,8 +254,14 @@ class RunLog:
         return self.write("end", time=utc_now(), status=status, reason=str(reason), **fields)
 
     def close(self) -> None:
-        if self._f is not None and not self._f.closed:
-            self._f.close()
+        """Close the file and release the log's lock (idempotent)."""
+        try:
+            if self._f is not None and not self._f.closed:
+                self._f.close()
+        finally:
+            if self._lock is not None:
+                self._lock.release()
+                self._lock = None
 
     def __enter__(self) -> RunLog:
         return self
@@ -206,6 +271,19 @@ class RunLog:
 
     def __repr__(self) -> str:
         return f"RunLog({str(self.path)!r})"
+
+
+def _take_lock(path: Path, lock):
+    """The log's lock per ``lock`` (True: take it; a RunLock: adopt it; False/None: none)."""
+    if lock is True:
+        from pigp_torch.runlock import log_lock
+
+        return log_lock(path).acquire()
+    if lock is False or lock is None:
+        return None
+    if not getattr(lock, "held", False):
+        lock.acquire()
+    return lock
 
 
 def _dumps(record: Mapping[str, Any]) -> str:
@@ -240,6 +318,8 @@ class RunRecords:
         starts: ``start`` records (one per session).
         evaluations: ``evaluation`` records, steps ``0 .. n-1`` in order.
         ends: ``end`` records.
+        intents: ``intent`` records (the settings commanded, in order).
+        discarded: ``discarded`` records (readings thrown away).
     """
 
     path: Path
@@ -247,6 +327,21 @@ class RunRecords:
     starts: list[dict] = field(default_factory=list)
     evaluations: list[dict] = field(default_factory=list)
     ends: list[dict] = field(default_factory=list)
+    intents: list[dict] = field(default_factory=list)
+    discarded: list[dict] = field(default_factory=list)
+
+    @property
+    def last_intent(self) -> dict | None:
+        """The last commanded setting (an ``intent`` record), ``None`` if none was logged."""
+        return self.intents[-1] if self.intents else None
+
+    @property
+    def initial_knobs(self) -> list[float] | None:
+        """The initial knobs of the run's first start (where a restore puts the knobs)."""
+        for start in self.starts:
+            if start.get("initial_knobs") is not None:
+                return list(start["initial_knobs"])
+        return None
 
     @property
     def knob_names(self) -> list[str]:
@@ -323,7 +418,7 @@ def read_log(path: str | Path) -> RunRecords:
     header = records[0]
     if header.get("format") != FORMAT_TAG:
         raise ValueError(f"{path} is not a run log (format tag {header.get('format')!r})")
-    if header.get("version") != FORMAT_VERSION:
+    if header.get("version") not in READABLE_VERSIONS:
         raise ValueError(f"{path}: unsupported run-log version {header.get('version')!r}")
     out = RunRecords(path=path, header=header)
     d = len(out.knob_names) or None
@@ -335,6 +430,10 @@ def read_log(path: str | Path) -> RunRecords:
             out.starts.append(rec)
         elif kind == "end":
             out.ends.append(rec)
+        elif kind == "intent":
+            out.intents.append(rec)
+        elif kind == "discarded":
+            out.discarded.append(rec)
         else:
             _check_evaluation(rec, len(out.evaluations), d, path)
             d = d or len(rec["x"])

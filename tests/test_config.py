@@ -49,6 +49,7 @@ def sim(**over) -> dict:
         "knobs": {k: [-0.01, 0.01] for k in KNOBS},
         "method": {"name": "nelder-mead"},
         "budget": 5,
+        "max_step": 0.1,
         "log": "run.jsonl",
     }
     data.update(over)
@@ -288,3 +289,93 @@ def test_the_example_run_files_are_valid(name):
     assert cfg.log.resolve().parent == folder.parent / "runs"
     assert cfg.machine.kind == name.split("_")[1].split(".")[0]
     assert cfg.objective_floor == 0.1 and cfg.restore == "initial"
+    assert cfg.warnings() == []
+    if cfg.machine.kind == "epics":  # a tolerance a real (noisy) readback can meet
+        assert cfg.machine.tolerance_fraction == 1e-3
+
+
+# ------------------------------------------------------------------ run files trusted less
+def test_a_key_given_twice_is_refused_in_yaml_and_json(tmp_path):
+    """A second `max_step: 1.5` (or any repeated key, at any depth) is an error naming the key
+    and both lines, not a silent override; JSON alike."""
+    text = yaml.safe_dump(sim()) + "max_step: 1.5\n"
+    (tmp_path / "run.yaml").write_text(text)
+    with pytest.raises(ConfigError, match=r"duplicate key 'max_step' \(line \d+, first given"):
+        load_config(tmp_path / "run.yaml")
+    nested = "machine:\n  kind: sim\n  noise: 0.04\n  noise: 0.4\n"
+    (tmp_path / "n.yaml").write_text(
+        nested + yaml.safe_dump({k: v for k, v in sim().items() if k != "machine"})
+    )
+    with pytest.raises(ConfigError, match=r"duplicate key 'noise'"):
+        load_config(tmp_path / "n.yaml")
+    body = json.dumps(sim())[:-1] + ', "budget": 500}'
+    (tmp_path / "run.json").write_text(body)
+    with pytest.raises(ConfigError, match=r"duplicate key 'budget'"):
+        load_config(tmp_path / "run.json")
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("missing", r"missing key 'max_step' \(a fraction .* unlimited"),
+        (None, r"max_step: null is not a step limit.*write unlimited"),
+        ("none", r"'none' is not a step limit"),
+    ],
+)
+def test_max_step_must_be_given_explicitly(value, message):
+    """No default step limit: a missing max_step, null or a casual 'none' are refused with the
+    spellings that are accepted."""
+    data = sim()
+    if value == "missing":
+        del data["max_step"]
+    else:
+        data["max_step"] = value
+    with pytest.raises(ConfigError, match=message):
+        validate_config(data)
+
+
+def test_unlimited_and_large_step_limits_are_named_in_warnings():
+    """'unlimited' is the deliberate way to run without a limit (and is warned about); a limit
+    above 10 % of a knob's range is named with its share; 0.1 of the half-range is quiet."""
+    assert validate_config(sim()).warnings() == []
+    cfg = validate_config(sim(max_step="unlimited"))
+    assert cfg.machine_max_step() is None and "no step limit" in cfg.warnings()[0]
+    (line,) = validate_config(sim(max_step=1000)).warnings()
+    assert "01G-QSS4 10 (50000 %)" in line and "02G-QSS3" in line
+    (line,) = validate_config(sim(max_step={"01G-QSS4": 0.001, "02G-QSS3": 0.005})).warnings()
+    assert "02G-QSS3" in line and "01G-QSS4" not in line
+
+
+def test_a_logged_configuration_is_verified_against_its_digest(tmp_path):
+    """The header stores the configuration's sha256; logged_config accepts it as written and
+    refuses an edited header (a doubled step limit) or one without a digest."""
+    from pigp_torch.config import logged_config
+
+    cfg = validate_config(sim(), base_dir=tmp_path)
+    RunLog.create(cfg.log, build_run(cfg).header()).close()
+    assert logged_config(read_log(cfg.log)).max_step == 0.1
+    lines = cfg.log.read_text().splitlines()
+    header = json.loads(lines[0])
+    header["config"]["max_step"] = 0.2
+    cfg.log.write_text(json.dumps(header) + "\n")
+    with pytest.raises(ConfigError, match="does not match its sha256"):
+        logged_config(read_log(cfg.log))
+    del header["config_sha256"]
+    cfg.log.write_text(json.dumps(header) + "\n")
+    with pytest.raises(ConfigError, match="no configuration digest"):
+        logged_config(read_log(cfg.log))
+
+
+def test_tolerance_fraction_and_stale_timeout_reach_the_epics_machine(fake_epics):
+    """tolerance_fraction is a share of each knob's range; it excludes tolerance."""
+    cfg = validate_config(
+        epics(machine={"kind": "epics", "tolerance_fraction": 0.01, "stale_timeout": 3.0})
+    )
+    build_run(cfg)
+    made = fake_epics[-1]
+    assert made["tolerance"].tolist() == pytest.approx([2e-4, 2e-4])
+    assert made["stale_timeout"] == 3.0
+    with pytest.raises(ConfigError, match="not both"):
+        validate_config(
+            epics(machine={"kind": "epics", "tolerance": 1.0, "tolerance_fraction": 0.01})
+        )

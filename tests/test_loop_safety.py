@@ -146,7 +146,16 @@ def test_restore_best_is_verified_by_readback(tmp_path):
 
     m = Stuck(x_init=(-0.2, -0.9))
     with pytest.raises(MachineError, match=r"readback check failed on knob indices \[0\]"):
-        optimize(m, Walk(BOUNDS, step=0.01), None, 3, restore="best", log=tmp_path / "s.jsonl")
+        optimize(
+            m,
+            Walk(BOUNDS, step=0.01),
+            None,
+            3,
+            restore="best",
+            log=tmp_path / "s.jsonl",
+            check_readings=False,  # the stuck readback would stop the run at its first reading
+            restore_interval=0.0,
+        )
     end = read_log(tmp_path / "s.jsonl").last_end
     assert end["status"] == "aborted" and end["reason"].startswith("restoring the knobs failed")
 
@@ -369,3 +378,142 @@ def test_resume_after_any_crash_reproduces_the_run(tmp_path_factory, name, crash
     assert resumed[cols].values.tolist() == reference[cols].values.tolist()
     again = build(name, bounds, 0)
     assert replay(again, read_log(path)) == 12
+
+
+# ------------------------------------------------------------------ crashes, restores, readings
+def test_resume_restores_the_first_starts_knobs_not_where_a_crash_left_them(tmp_path):
+    """A run killed hard (no end record) leaves the knobs at its last setting; the resumed run
+    restores the knobs logged by the first start, notes where it found them, and ramps there
+    within the step limit."""
+    path = tmp_path / "r.jsonl"
+    m = FaultyMachine(max_step=0.1)
+    optimize(m, Walk(BOUNDS), None, 4, moves="ramp", log=path)
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines[:-1]))  # as if SIGKILLed before the end record
+    crashed = read_log(path)
+    crash_point = crashed.X()[-1]
+    assert crashed.last_end is None and crashed.initial_knobs == INITIAL
+    m2 = FaultyMachine(max_step=0.1, x_init=crash_point.tolist())  # the knobs where it stopped
+    optimize(m2, Walk(BOUNDS), None, 6, moves="ramp", log=path, resume=crashed)
+    assert m2.get().tolist() == pytest.approx(INITIAL, abs=1e-12)
+    log = read_log(path)
+    assert log.starts[-1]["initial_knobs"] == INITIAL
+    assert log.starts[-1]["found_knobs"] == crash_point.tolist()
+    assert log.last_end["restored"] is True and log.last_end["final_knobs"] == pytest.approx(
+        INITIAL
+    )
+    path_sets = [crash_point, *m2.sets]
+    steps = torch.stack([(b - a).abs() for a, b in itertools.pairwise(path_sets)])
+    assert float(steps.max()) <= 0.1 + 1e-12
+
+
+def test_an_intent_record_precedes_every_set(tmp_path):
+    """Every setting the loop writes (ramp parts, the restore) is in the log as an intent before
+    the write: the intents are exactly the machine's sets, in order."""
+    m = FaultyMachine(max_step=0.1)
+    seen = []
+
+    class Watching(FaultyMachine):
+        def _apply(self, x):
+            seen.append(read_log(tmp_path / "r.jsonl").last_intent["x"])  # already on disk
+            super()._apply(x)
+
+    m = Watching(max_step=0.1)
+    optimize(m, Walk(BOUNDS), None, 4, moves="ramp", log=tmp_path / "r.jsonl")
+    log = read_log(tmp_path / "r.jsonl")
+    assert [i["x"] for i in log.intents] == [s.tolist() for s in m.sets] == seen
+    assert {i["purpose"] for i in log.intents} == {"evaluation", "restore initial"}
+    assert log.intents[-1]["x"] == INITIAL and log.last_end["last_setpoint"] == INITIAL
+    for e in log.evaluations:  # the last intent before an evaluation is its setting
+        before = [i for i in log.intents if i["_line"] < e["_line"]]
+        assert before[-1]["x"] == e["x"] and before[-1]["step"] == e["step"]
+
+
+def test_a_failed_restore_is_retried_and_the_end_record_says_so(tmp_path):
+    """The first restore attempt fails (a power supply trips), the second succeeds; when every
+    attempt fails the end record has restored false and the last setpoint written."""
+
+    class TripsOnce(FaultyMachine):
+        def _apply(self, x):
+            back = torch.equal(x, torch.tensor(INITIAL, dtype=D)) and self.n_reads >= 3
+            if back and not getattr(self, "tripped", 0):
+                self.tripped = 1
+                raise MachineError("power supply tripped during the restore")
+            super()._apply(x)
+
+    m = TripsOnce()
+    optimize(m, Walk(BOUNDS), None, 3, log=tmp_path / "a.jsonl", restore_interval=0.0)
+    end = read_log(tmp_path / "a.jsonl").last_end
+    assert end["restored"] is True and end["restore_attempts"] == 2
+    assert "power supply tripped" in end["restore_errors"][0] and m.get().tolist() == INITIAL
+
+    class NeverBack(FaultyMachine):
+        def _apply(self, x):
+            if torch.equal(x, torch.tensor(INITIAL, dtype=D)) and self.n_reads >= 3:
+                raise MachineError("interlock")
+            super()._apply(x)
+
+    m = NeverBack()
+    with pytest.raises(MachineError, match="interlock"):
+        optimize(m, Walk(BOUNDS), None, 3, log=tmp_path / "b.jsonl", restore_interval=0.0)
+    end = read_log(tmp_path / "b.jsonl").last_end
+    assert end["restored"] is False and end["restore_attempts"] == 3
+    assert end["restored_to"] == "initial (failed)" and end["last_setpoint"] == INITIAL
+    assert end["final_knobs"] == m.get().tolist() != INITIAL
+
+
+def test_a_reading_taken_while_the_machine_changed_is_discarded(tmp_path):
+    """A disconnection during a reading: the reading is discarded (logged) and taken again.
+    Readbacks that left the setting during a reading (an IOC reboot): discarded, and the run
+    aborts with MachineError; no evaluation holds the bad reading."""
+
+    class Blip(FaultyMachine):
+        disconnections = 0
+
+        def read(self):
+            y = super().read()
+            if self.n_reads == 3:
+                self.disconnections += 1
+                return -100.0  # what a reading across a reconnect may look like
+            return y
+
+    m = Blip()
+    optimize(m, Walk(BOUNDS), None, 4, log=tmp_path / "a.jsonl")
+    log = read_log(tmp_path / "a.jsonl")
+    assert [d["step"] for d in log.discarded] == [2] and log.discarded[0]["y"] == -100.0
+    assert "disconnection" in log.discarded[0]["reason"]
+    assert -100.0 not in log.Y().tolist() and log.evaluations[2]["reads"] == 2
+
+    class Reboot(FaultyMachine):
+        def read(self):
+            y = super().read()
+            if self.n_reads == 3:
+                self._x = torch.zeros(2, dtype=D)  # the IOC came back with every knob at 0
+            return y
+
+    m = Reboot()
+    with pytest.raises(MachineError, match="reading discarded and the knobs moved"):
+        optimize(m, Walk(BOUNDS), None, 6, log=tmp_path / "b.jsonl")
+    log = read_log(tmp_path / "b.jsonl")
+    assert log.n_evaluations == 2 and [d["step"] for d in log.discarded] == [2]
+    assert log.last_end["status"] == "aborted" and m.get().tolist() == INITIAL
+
+
+def test_sighup_takes_the_sigterm_path(tmp_path):
+    """SIGHUP (terminal closed) during a run: Terminated with signum SIGHUP, knobs restored, the
+    log ends 'interrupted' naming SIGHUP; the previous handler is put back."""
+    previous = signal.getsignal(signal.SIGHUP)
+
+    class HungUp(FaultyMachine):
+        def read(self):
+            if self.n_reads == 2:
+                os.kill(os.getpid(), signal.SIGHUP)
+            return super().read()
+
+    m = HungUp()
+    with pytest.raises(Terminated) as info:
+        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=tmp_path / "r.jsonl")
+    assert info.value.signum == signal.SIGHUP
+    assert signal.getsignal(signal.SIGHUP) is previous and m.get().tolist() == INITIAL
+    end = read_log(tmp_path / "r.jsonl").last_end
+    assert end["status"] == "interrupted" and "SIGHUP" in end["reason"]

@@ -1,24 +1,52 @@
 r"""``pigp optimize``: an online run from a run file, with a run log, safe stops and resume.
 
-``pigp optimize --config run.yaml`` validates the file (:mod:`pigp_torch.config`), builds the
-optimizer and then the machine, writes the run log's header (configuration, prior provenance) and
-runs :func:`pigp_torch.optimize` with ramped moves, read retries, the objective floor and the
-restore of the initial knobs (or the best point with ``restore: best``). One line per evaluation
-goes to stdout, then a summary: status, best reading and where, and where the knobs were put back.
+``pigp optimize --config run.yaml`` validates the file (:mod:`pigp_torch.config`), takes the
+run's locks (the run log's, and on EPICS one per PV prefix: :mod:`pigp_torch.runlock`), builds
+the optimizer and then the machine, writes the run log's header (configuration and its sha256,
+prior provenance) and runs :func:`pigp_torch.optimize` with ramped moves, intent records, read
+retries, checked readings, the objective floor and the restore of the initial knobs (or the best
+point with ``restore: best``). One line per evaluation goes to stdout (counted from 1), then a
+summary: status, best reading and where, and where the knobs were put back — or, if they could
+not be, the last setpoint written.
 
 ``--resume LOG`` continues a logged run: the optimizer is rebuilt from the logged evaluations
-(:func:`pigp_torch.runlog.replay`) and the run goes on up to the budget (which may be raised in
-the run file; nothing else may change). ``--dry-run`` validates, connects and prints the plan
+(:func:`pigp_torch.runlog.replay`), the knobs are compared with the initial knobs of the run's
+first start (the restore target) and the last commanded setting, and the run goes on up to the
+budget (which may be raised in the run file; nothing else may change). Without ``--config`` the
+configuration in the log header is used after its sha256 is verified, and its safety limits are
+printed. ``--dry-run`` validates, checks the log path and the locks, connects and prints the plan
 without moving anything or writing the log.
-
-Exit status: 0 completed, 1 aborted by a safety rule or a machine error, 2 invalid input,
-130 interrupted by Ctrl-C (SIGINT), 143 by SIGTERM — in every case after the knobs were restored.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import math
+import signal
 import sys
 from pathlib import Path
+
+#: Exit statuses of ``pigp optimize`` (also in ``--help`` and the README).
+EXIT_OK = 0
+EXIT_STOPPED = 1  # a safety rule, a machine error or another error stopped the run; restored
+EXIT_INPUT = 2  # invalid input (run file, log, arguments); nothing was moved
+EXIT_NOT_RESTORED = 3  # the knobs were NOT restored (any cause): see the last setpoint
+EXIT_LOCKED = 4  # another run holds the run log or the machine; nothing was moved
+
+#: Methods of ``pigp optimize`` (the same names as :data:`pigp_torch.config.METHOD_NAMES`).
+METHODS = ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "rcds")
+
+EXIT_HELP = """exit status:
+  0    completed; the knobs restored (or set to the best point with restore: best)
+  1    stopped by a safety rule, a machine error or another error; knobs restored
+       (also: a PV that does not connect, nothing moved)
+  2    invalid input (run file, run log, arguments); nothing moved
+  3    the knobs were NOT restored (whatever ended the run): the last setpoint written
+       is printed and logged (end record: restored false, last_setpoint)
+  4    refused: another run holds the run log or the machine (lock file named)
+  129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored
+"""
 
 
 def register(sub, bench) -> None:
@@ -26,11 +54,14 @@ def register(sub, bench) -> None:
     p = sub.add_parser(
         "optimize",
         help="optimize a machine (simulated or EPICS) from a run file, with a run log",
-        description="Run an optimizer (pigp, ml2, nelder-mead, rcds) on the machine described by "
-        "a YAML/JSON run file. Every evaluation is appended to a JSON-lines run log before the "
-        "next step; the initial knobs are restored on Ctrl-C, SIGTERM, errors and at the end "
-        "(unless restore: best). --resume LOG continues a logged run; --dry-run only prints the "
-        "plan.",
+        description=f"Run an optimizer ({', '.join(METHODS)}) on the machine described by a "
+        "YAML/JSON run file. Every evaluation is appended to a JSON-lines run log before the "
+        "next step, and every setting is logged before it is written; the initial knobs are "
+        "restored on Ctrl-C, SIGTERM, SIGHUP, errors and at the end (unless restore: best). "
+        "One run per run log and per machine (lock files). --resume LOG continues a logged run "
+        "and restores to the knobs of its first start; --dry-run only prints the plan.",
+        epilog=EXIT_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
         "--config",
@@ -99,73 +130,185 @@ def _print_plan(setup, records, out) -> None:
         print(f"  run log {c.log}", file=out)
 
 
-def _print_summary(path: Path, out) -> None:
+def _say(out, text: str = "") -> None:
+    """Print a line; a closed terminal (SIGHUP, SSH dropped) never stops the run or the restore."""
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=out, flush=True)
+
+
+def _print_summary(path: Path, out) -> dict | None:
+    """Print how the run ended (from the log's last end record); returns that record."""
     from pigp_torch.runlog import read_log
 
     records = read_log(path)
     end = records.last_end
     if end is None:
-        return
+        return None
     names = records.knob_names
-    print(
-        f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""), file=out
-    )
+    _say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
     start = records.starts[-1] if records.starts else {}
     session = records.n_evaluations - int(start.get("first_step", 0))
-    print(f"evaluations: {records.n_evaluations} logged ({session} in this session)", file=out)
+    _say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
     best = end.get("best")
     if best:
-        print(
-            f"best y = {best['y']:.6g} at step {best['step']}: {_fmt_knobs(names, best['x'])}",
-            file=out,
+        _say(
+            out,
+            f"best y = {best['y']:.6g} at evaluation {best['step'] + 1}: "
+            f"{_fmt_knobs(names, best['x'])}",
         )
     final = end.get("final_knobs")
-    if isinstance(final, list):
-        print(
-            f"knobs restored to {end.get('restored_to')}, readback: {_fmt_knobs(names, final)}",
-            file=out,
+    if end.get("restored") is False:
+        last = end.get("last_setpoint")
+        _say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
+                  "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
+        if isinstance(last, list):
+            _say(out, f"last setpoint written: {_fmt_knobs(names, last)}")
+        if isinstance(final, list):
+            _say(out, f"readback now: {_fmt_knobs(names, final)}")
+        elif final is not None:
+            _say(out, f"readback now: {final}")
+    elif isinstance(final, list):
+        _say(
+            out, f"knobs restored to {end.get('restored_to')}, readback: {_fmt_knobs(names, final)}"
         )
     elif final is not None:
-        print(f"knobs: restore {end.get('restored_to')}; readback {final}", file=out)
-    print(f"run log: {path}", file=out)
+        _say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
+    _say(out, f"run log: {path}")
+    return end
+
+
+def _print_resume_state(setup, records, out) -> None:
+    """Where the knobs stand against the restore target (the first start's initial knobs) and
+    the last commanded setting, and how many ramp steps away they are."""
+    import torch
+
+    from pigp_torch.loop import effective_max_step
+
+    initial = records.initial_knobs
+    if initial is None:
+        return
+    names = setup.config.knob_names
+    now = setup.machine.get().tolist()
+    intent = records.last_intent
+    last = intent["x"] if intent else None
+    _say(out, "resume: the knobs now against the initial knobs of the first start (the restore "
+              "target) and the last setting commanded before the stop:")  # fmt: skip
+    head = f"  {'knob':<14}{'initial':>12}{'now':>12}{'now-initial':>13}"
+    _say(out, head + (f"{'last commanded':>16}" if last else ""))
+    for i, n in enumerate(names):
+        line = f"  {n:<14}{initial[i]:>12.6g}{now[i]:>12.6g}{now[i] - initial[i]:>13.4g}"
+        _say(out, line + (f"{last[i]:>16.6g}" if last else ""))
+    bounds = setup.config.bounds()
+    limit = effective_max_step(setup.machine, bounds, setup.config.machine_max_step())
+    delta = torch.tensor(now, dtype=torch.float64) - torch.tensor(initial, dtype=torch.float64)
+    if not bool(delta.abs().max() > 0):
+        _say(out, "  the knobs stand at the initial knobs")
+    elif limit is not None:
+        steps = math.ceil(float((delta.abs() / limit).max()))
+        _say(out, f"  the knobs are {steps} step limit(s) from the initial knobs; the restore "
+                  "at the end ramps there within the step limit")  # fmt: skip
+    if last is not None:
+        at = max(abs(a - b) for a, b in zip(now, last, strict=True))
+        where = "at" if at <= 1e-12 else f"{at:.3g} (largest knob difference) from"
+        _say(out, f"  the knobs stand {where} the last commanded setting ({intent['purpose']})")
+
+
+def _locks(config, log_path: Path):
+    """The run's locks, not yet taken: the log's, then one per PV prefix (EPICS)."""
+    from pigp_torch.runlock import log_lock, machine_locks
+
+    locks = [log_lock(log_path)]
+    pvs = config.pv_names()
+    if pvs:
+        locks += machine_locks(pvs, config.lock_dir)
+    return locks
+
+
+def _check_log_path(path: Path) -> None:
+    """The run log can be created: it does not exist and its folder is (or can be) writable."""
+    import os
+
+    if path.exists():
+        raise ValueError(
+            f"the run log {path} exists: continue it with --resume {path}, or set another log path"
+        )
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
 
 
 def cmd_optimize(args) -> int:
     import torch
 
     from pigp_torch.config import build_run, check_resume, load_config, logged_config
+    from pigp_torch.machine.errors import MachineError
+    from pigp_torch.runlock import LockHeld, holding
     from pigp_torch.runlog import read_log
 
     torch.set_num_threads(1)  # an online run is measurement-bound; do not crowd the host
+    out = sys.stdout
     if args.config is None and args.resume is None:
         raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
-    records = None
+    from_header = False
     if args.resume is not None:
-        records = read_log(args.resume)
+        records = read_log(args.resume)  # read again once the lock is held
         config = load_config(args.config) if args.config is not None else logged_config(records)
-        check_resume(config, records)
-        if records.n_evaluations >= config.budget:
-            raise ValueError(
-                f"{args.resume} already holds {records.n_evaluations} evaluations and the "
-                f"budget is {config.budget}: raise the budget in the run file to continue"
-            )
+        from_header = args.config is None
+        log_path = Path(args.resume)
     else:
         config = load_config(args.config)
-        if config.log.exists() and not args.dry_run:
-            raise ValueError(
-                f"the run log {config.log} exists: continue it with --resume {config.log}, or "
-                "set another log path"
-            )
-    setup = build_run(config)  # the machine is constructed (connected) last
+        _check_log_path(config.log)
+        log_path = config.log
+    locks = _locks(config, log_path)
     try:
-        return _run(args, setup, records)
-    finally:
-        close = getattr(setup.machine, "close", None)  # EPICS: release the CA connections
-        if callable(close):
-            close()
+        with holding(locks) as taken:
+            for lock in taken:
+                if lock.stale:
+                    _say(sys.stderr, f"note: took over the stale lock {lock.path} of PID "
+                                     f"{lock.stale.get('pid')} on {lock.stale.get('host')} "
+                                     "(no longer running)")  # fmt: skip
+            if args.dry_run:  # the locks were free; a dry run does not keep them
+                for lock in reversed(taken):
+                    lock.release()
+            records = None
+            if args.resume is not None:
+                records = read_log(args.resume)  # what the log holds now that it is ours
+                check_resume(config, records)
+                if records.n_evaluations >= config.budget:
+                    raise ValueError(
+                        f"{args.resume} already holds {records.n_evaluations} evaluations and "
+                        f"the budget is {config.budget}: raise the budget in the run file to "
+                        "continue"
+                    )
+            if from_header:
+                _say(out, f"configuration from the log header of {args.resume} (sha256 "
+                          "verified); safety limits used:")  # fmt: skip
+                for line in config.safety_lines():
+                    _say(out, f"  {line}")
+            for warning in config.warnings():
+                _say(sys.stderr, f"warning: {warning}")
+            try:
+                setup = build_run(config)  # the machine is constructed (connected) last
+            except MachineError as err:
+                _say(sys.stderr, f"pigp optimize: could not connect to the machine: {err}")
+                return EXIT_STOPPED
+            try:
+                log_lock = None if args.dry_run else taken[0]
+                return _run(args, setup, records, log_lock)
+            finally:
+                close = getattr(setup.machine, "close", None)  # EPICS: release CA connections
+                if callable(close):
+                    close()
+    except LockHeld as err:
+        _say(sys.stderr, f"pigp optimize: refused: {err}")
+        return EXIT_LOCKED
 
 
-def _run(args, setup, records) -> int:
+def _run(args, setup, records, log_lock) -> int:
     from pigp_torch.config import advance_simulated_noise
     from pigp_torch.loop import RunAborted, Terminated
     from pigp_torch.machine.errors import MachineError
@@ -175,18 +318,23 @@ def _run(args, setup, records) -> int:
     out = sys.stdout
     if args.dry_run:
         _print_plan(setup, records, out)
-        print("dry run: nothing was moved or written", file=out)
-        return 0
+        if records is not None:
+            _print_resume_state(setup, records, out)
+        _say(out, "dry run: nothing was moved or written")
+        return EXIT_OK
 
     if records is not None:
-        log = RunLog.append(args.resume)
+        log = RunLog.append(args.resume, lock=log_lock)
         advance_simulated_noise(
             setup.machine, sum(int(r.get("reads", 1)) for r in records.evaluations)
         )
     else:
-        log = RunLog.create(config.log, setup.header())
+        log = RunLog.create(config.log, setup.header(), lock=log_lock)
     _print_plan(setup, records, out)
-    out.flush()
+    if records is not None:
+        _print_resume_state(setup, records, out)
+    with contextlib.suppress(OSError, ValueError):
+        out.flush()
     budget = config.budget
     maximize = config.objective.maximize
     state = {"best": None}
@@ -196,32 +344,32 @@ def _run(args, setup, records) -> int:
         b = state["best"]
         if b is None or (y > b if maximize else y < b):
             state["best"] = y
-        print(
-            f"step {row['step']:>4}/{budget}  y = {y:.6g}  best = {state['best']:.6g}",
-            file=out,
-            flush=True,
-        )
+        _say(out, f"evaluation {row['step'] + 1:>4}/{budget}  y = {y:.6g}  best = "
+                  f"{state['best']:.6g}")  # fmt: skip
 
     if records is not None and records.evaluations:
-        print(
-            f"replaying {records.n_evaluations} logged evaluations (one ask each) ...",
-            file=out,
-            flush=True,
-        )
+        _say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
         ys = [r["y"] for r in records.evaluations]
         state["best"] = max(ys) if maximize else min(ys)
-    code = 2
+    code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
-        code = 0
+        code = EXIT_OK
     except KeyboardInterrupt as err:
-        code = 143 if isinstance(err, Terminated) else 130
-        print(f"pigp optimize: interrupted ({type(err).__name__})", file=sys.stderr)
+        signum = err.signum if isinstance(err, Terminated) else signal.SIGINT
+        code = 128 + int(signum)
+        _say(sys.stderr, f"pigp optimize: interrupted ({type(err).__name__}: "
+                         f"{signal.Signals(signum).name})")  # fmt: skip
     except (MachineError, RunAborted) as err:
-        code = 1
-        print(f"pigp optimize: run aborted: {type(err).__name__}: {err}", file=sys.stderr)
+        _say(sys.stderr, f"pigp optimize: run aborted: {type(err).__name__}: {err}")
+    except Exception as err:  # a refused setting, a bug: the loop has restored the knobs
+        _say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()
-        _print_summary(log.path, out)
-        out.flush()
+        end = _print_summary(log.path, out)
+        with contextlib.suppress(OSError, ValueError):
+            out.flush()
+    if end is not None and end.get("restored") is False:
+        _say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
+        return EXIT_NOT_RESTORED
     return code

@@ -23,6 +23,8 @@ SETPOINT_SUFFIX = ":CurrSetpt"
 READBACK_SUFFIX = ":Curr1"
 NAN_READINGS_SUFFIX = "Sim:NanReadings"
 READBACK_DELAY_SUFFIX = "Sim:ReadbackDelay"
+FROZEN_SUFFIX = "Sim:Frozen"
+REBOOT_ON_READ_SUFFIX = "Sim:RebootOnRead"
 #: Loopback: the simulated IOC never listens on an outside interface.
 LOOPBACK = "127.0.0.1"
 
@@ -70,11 +72,13 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 __all__ = [
     "DEFAULT_PREFIX",
+    "FROZEN_SUFFIX",
     "LOOPBACK",
     "LOSS_RATE_SUFFIX",
     "NAN_READINGS_SUFFIX",
     "READBACK_DELAY_SUFFIX",
     "READBACK_SUFFIX",
+    "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
     "add_ioc_arguments",
 ]

@@ -17,7 +17,16 @@ PV                        access      meaning
 ``P Sim:ReadbackDelay``   read/write  fault injection: seconds before readbacks follow (>= 0)
 ``P Sim:NanReadings``     read/write  fault injection: the next N client reads of the loss
                                       rate return NaN (decremented on each read)
+``P Sim:Frozen``          read/write  fault injection (tests): 1 stops the loss-rate refreshes
+                                      (value and timestamp stay), 0 resumes them
+``P Sim:RebootOnRead``    read/write  fault injection (tests): the N-th client read of the loss
+                                      rate from now (decremented on each read) is answered,
+                                      then the "IOC reboots": every setpoint and readback
+                                      drops to its power-on value (the initial knobs)
 ========================  ==========  ========================================================
+
+The loss rate's CA timestamp is the time of its last refresh (a client read does not renew
+it), so a client can tell a fresh reading from a repeated one.
 
 The physics is :class:`~pigp_torch.machine.SimulatedMachine` around a
 :class:`~pigp_torch.simulation.RingCoupling` ring: at every refresh the machine is set to the
@@ -57,11 +66,13 @@ from caproto.server import PVGroup, pvproperty
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.epics import (
     DEFAULT_PREFIX,
+    FROZEN_SUFFIX,
     LOOPBACK,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
     READBACK_DELAY_SUFFIX,
     READBACK_SUFFIX,
+    REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
     add_ioc_arguments,
 )
@@ -113,7 +124,10 @@ class SimRingIOC(PVGroup):
         self.setpoints = [getattr(self, f"setpoint_{i}") for i in range(d)]
         self.readbacks = [getattr(self, f"readback_{i}") for i in range(d)]
         self._x_readback = torch.tensor([rb.value for rb in self.readbacks], dtype=DTYPE)
+        self._power_on = [float(sp.value) for sp in self.setpoints]
         self._last_reading = float("nan")
+        self._refresh_stamp = time.time()
+        self._served_nan = False
         self._refresh()  # a valid first reading (this also checks the knobs against the bounds)
         self._put_count = [0] * d  # latest put per knob wins over older delayed readbacks
         self._tasks: set[asyncio.Task] = set()
@@ -145,23 +159,45 @@ class SimRingIOC(PVGroup):
         """One noisy reading of the simulated loss rate at the current readbacks."""
         self.machine.set(self._x_readback)
         self._last_reading = float(self.machine.read())
+        self._refresh_stamp = time.time()
         return self._last_reading
 
     async def _refresh_loop(self, async_lib) -> None:
-        """Publish a new loss-rate reading every ``update_period`` seconds (forever)."""
+        """Publish a new loss-rate reading every ``update_period`` seconds (forever), except
+        while ``Sim:Frozen`` is set."""
         sleep = async_lib.library.sleep
         while True:
             t0 = time.monotonic()
-            await self.loss_rate.write(self._refresh())
+            if not int(self.frozen.value):
+                value = self._refresh()
+                await self.loss_rate.write(value, timestamp=self._refresh_stamp)
+                self._served_nan = False
             await sleep(max(0.0, self.update_period - (time.monotonic() - t0)))
 
-    async def _on_read(self) -> float:
-        """A client reads the loss rate: NaN while ``Sim:NanReadings`` > 0, else the last value."""
+    async def _reboot(self) -> None:
+        """Every setpoint and readback back at its power-on value (an IOC without autosave)."""
+        for i, value in enumerate(self._power_on):
+            self._put_count[i] += 1
+            await self.setpoints[i].write(value, verify_value=False)
+            await self._set_readback(i, value)
+
+    async def _on_read(self):
+        """A client reads the loss rate: NaN while ``Sim:NanReadings`` > 0, else the last value
+        with the timestamp of its refresh (``None``: the stored value is served unchanged)."""
+        n_reboot = int(self.reboot_on_read.value)
+        if n_reboot > 0:
+            await self.reboot_on_read.write(n_reboot - 1)
+            if n_reboot == 1:
+                await self._reboot()
         n = int(self.nan_readings.value)
         if n > 0:
             await self.nan_readings.write(n - 1)
+            self._served_nan = True
             return float("nan")
-        return self._last_reading
+        if self._served_nan:  # put the last refresh back, with its own timestamp
+            self._served_nan = False
+            await self.loss_rate.write(self._last_reading, timestamp=self._refresh_stamp)
+        return None
 
     # ------------------------------------------------------------------ names
     @property
@@ -225,7 +261,7 @@ def sim_ioc_class(
             lower_ctrl_limit=lo,
             upper_ctrl_limit=hi,
             precision=6,
-            units=units,
+            units=str(units),
             doc=f"setpoint of {name} ({units}), limits [{lo}, {hi}]",
         )
 
@@ -240,7 +276,7 @@ def sim_ioc_class(
             dtype=ChannelType.DOUBLE,
             read_only=True,
             precision=6,
-            units=units,
+            units=str(units),
             doc=f"readback of {name} ({units})",
         )
 
@@ -279,6 +315,22 @@ def sim_ioc_class(
         lower_ctrl_limit=0,
         upper_ctrl_limit=1_000_000,
         doc="fault injection: the next N reads of the loss rate return NaN",
+    )
+    attrs["frozen"] = pvproperty(
+        value=0,
+        name=f"{prefix}{FROZEN_SUFFIX}",
+        dtype=ChannelType.LONG,
+        lower_ctrl_limit=0,
+        upper_ctrl_limit=1,
+        doc="fault injection (tests): 1 stops the loss-rate refreshes",
+    )
+    attrs["reboot_on_read"] = pvproperty(
+        value=0,
+        name=f"{prefix}{REBOOT_ON_READ_SUFFIX}",
+        dtype=ChannelType.LONG,
+        lower_ctrl_limit=0,
+        upper_ctrl_limit=1_000_000,
+        doc="fault injection (tests): reboot (knobs to power-on values) at the N-th read",
     )
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
 
@@ -400,7 +452,9 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
 
     Prints :data:`READY_MESSAGE` and (with ``log_pv_names``) the PV names once the server's
     sockets are bound. SIGTERM is handled as Ctrl-C (main thread only): ``asyncio.run`` cancels
-    the server task, which closes its sockets and returns.
+    the server task, which closes its sockets and returns. SIGINT is given Python's default
+    handler for the duration even where the parent ignored it (a background job started from a
+    script), because the SIGTERM path goes through SIGINT.
     """
     import signal
     import threading
@@ -418,12 +472,16 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
         signal.raise_signal(signal.SIGINT)  # asyncio.run's own SIGINT handling: a clean stop
 
     in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
+    previous = previous_int = None
+    if in_main:
+        previous = signal.signal(signal.SIGTERM, on_sigterm)
+        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         run(ioc.pvdb, interfaces=[LOOPBACK], startup_hook=announce)  # returns on Ctrl-C
     finally:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous_int)
 
 
 def sim_ioc_from_args(args):
@@ -492,6 +550,14 @@ class SimIOCProcess:
     @property
     def readback_delay_pv(self) -> str:
         return f"{self.prefix}{READBACK_DELAY_SUFFIX}"
+
+    @property
+    def frozen_pv(self) -> str:
+        return f"{self.prefix}{FROZEN_SUFFIX}"
+
+    @property
+    def reboot_on_read_pv(self) -> str:
+        return f"{self.prefix}{REBOOT_ON_READ_SUFFIX}"
 
     @property
     def setpoint_pvs(self) -> list[str]:

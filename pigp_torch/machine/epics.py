@@ -21,9 +21,22 @@ Channel Access (CA), so :func:`pigp_torch.optimize` drives a control system exac
 
 **A read** (:meth:`EpicsMachine.read`) is the mean of ``n_average`` readings of the objective PV,
 ``average_interval`` seconds apart (use at least the PV's update period, or the readings repeat).
+*Freshness:* each reading is read with its CA timestamp, which must be newer than that of the
+previous valid reading (of this read or an earlier one); while it is not, the PV is read again
+every ``stale_poll`` seconds, for at most ``stale_timeout`` seconds, then
+:class:`StaleReadingError` (a ``ReadError``: a frozen objective PV never yields a reading).
+:attr:`EpicsMachine.last_reading` describes the last read (timestamps, polls of stale values).
 A reading that is NaN/inf, times out or finds the channel disconnected is retried, up to
 ``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. **get** returns
-the knob readbacks read over CA at that moment (never a cached value). Every failure of the
+the knob readbacks read over CA at that moment (never a cached value); :meth:`setpoints` the
+setpoint PVs likewise. :attr:`EpicsMachine.disconnections` counts the channel disconnections
+seen since the machine connected (a reboot of the IOC, a network cut); the loop discards a reading
+during which it changed.
+
+**Control limits.** At connection the setpoint PVs' control limits (``DRVL``/``DRVH``, else the
+display limits ``LOPR``/``HOPR`` when the control limits are unset, i.e. both 0) are read; bounds
+outside them are refused with ``ValueError`` (the IOC would refuse such puts in the middle of a
+run). :attr:`EpicsMachine.control_limits` holds them (NaN where a PV has none). Every failure of the
 control system surfaces as a :class:`~pigp_torch.machine.errors.MachineError` subclass, which
 the loop answers by putting the initial knobs back.
 
@@ -62,6 +75,10 @@ TOLERANCE_REL = 1e-6
 TOLERANCE_ABS = 1e-9
 
 
+class StaleReadingError(ReadError):
+    """The objective PV's timestamp did not advance within ``stale_timeout`` (a frozen PV)."""
+
+
 class _CaprotoAdapter:
     """The Channel Access calls :class:`EpicsMachine` needs, over caproto's threading client.
 
@@ -82,6 +99,14 @@ class _CaprotoAdapter:
         self._owns_context = context is None
         self.context = Context(timeout=timeout) if context is None else context
         self._pvs: dict = {}
+        #: Channel disconnections seen (connection-state callbacks), all PVs together.
+        self.disconnections = 0
+        self._lock = threading.Lock()
+
+    def _on_state(self, pv, state) -> None:
+        if state == "disconnected":
+            with self._lock:
+                self.disconnections += 1
 
     def connect(self, names: list[str], timeout: float) -> list[str]:
         """Connect to ``names``; return those not connected within ``timeout`` (s)."""
@@ -89,6 +114,7 @@ class _CaprotoAdapter:
         if new:
             for name, pv in zip(new, self.context.get_pvs(*new, timeout=timeout), strict=True):
                 self._pvs[name] = pv
+                pv.connection_state_callback.add_callback(self._on_state, run=False)
         deadline = time.monotonic() + timeout
         missing = []
         for name in names:
@@ -158,6 +184,46 @@ class _CaprotoAdapter:
                 raise MachineError(f"non-numeric value read from {name}: {err}") from err
         return values
 
+    def read_timed(self, name: str, timeout: float) -> tuple[float, float]:
+        """``(value, CA timestamp in UNIX seconds)`` of one scalar PV (a DBR_TIME read)."""
+        from caproto import ChannelType
+
+        try:
+            response = self._pvs[name].read(timeout=timeout, data_type=ChannelType.TIME_DOUBLE)
+            return float(response.data[0]), float(response.metadata.timestamp)
+        except self._errors as err:
+            raise MachineError(
+                f"could not read {name} within {timeout:.3g} s "
+                f"(IOC down or channel disconnected): {type(err).__name__}: {err}"
+            ) from err
+        except (TypeError, IndexError, AttributeError) as err:
+            raise MachineError(f"non-numeric value read from {name}: {err}") from err
+
+    def control_limits(self, names: list[str], timeout: float) -> list[tuple[float, float, str]]:
+        """``(lower, upper, source)`` per PV: the control limits (``"DRVL/DRVH"``), else the
+        display limits (``"LOPR/HOPR"``) where the control limits are unset (both 0), else
+        ``(nan, nan, "none")``."""
+        from caproto import ChannelType
+
+        out = []
+        for name in names:
+            try:
+                md = self._pvs[name].read(timeout=timeout, data_type=ChannelType.CTRL_DOUBLE)
+                md = md.metadata
+                lo, hi = float(md.lower_ctrl_limit), float(md.upper_ctrl_limit)
+                src = "DRVL/DRVH"
+                if lo == 0.0 and hi == 0.0:
+                    lo, hi = float(md.lower_disp_limit), float(md.upper_disp_limit)
+                    src = "LOPR/HOPR"
+                if (lo == 0.0 and hi == 0.0) or not lo < hi:
+                    lo, hi, src = math.nan, math.nan, "none"
+            except self._errors as err:
+                raise MachineError(f"could not read the limits of {name}: {err}") from err
+            except (TypeError, AttributeError):  # a record type without limits
+                lo, hi, src = math.nan, math.nan, "none"
+            out.append((lo, hi, src))
+        return out
+
     def write_many(self, names: list[str], values: list[float], timeout: float) -> None:
         """Write ``values`` to ``names`` in parallel and wait for every put completion."""
         values = [float(v) for v in values]
@@ -176,6 +242,22 @@ class _CaprotoAdapter:
             self.context.disconnect()
         self.context = None
         self._pvs = {}
+
+
+def _check_control_limits(names, bounds: torch.Tensor, limits) -> None:
+    """``ValueError`` listing every knob whose bounds leave its PV's control limits."""
+    bad = []
+    for i, (lo, hi, src) in enumerate(limits):
+        if src == "none":
+            continue
+        b_lo, b_hi = float(bounds[0, i]), float(bounds[1, i])
+        if b_lo < lo or b_hi > hi:
+            bad.append(f"{names[i]}: bounds [{b_lo:g}, {b_hi:g}] outside {src} [{lo:g}, {hi:g}]")
+    if bad:
+        raise ValueError(
+            "knob bounds outside the IOC's control limits (the IOC would refuse such puts): "
+            + "; ".join(bad)
+        )
 
 
 class EpicsMachine(GuardedMachine):
@@ -203,13 +285,22 @@ class EpicsMachine(GuardedMachine):
         read_retries: extra attempts for an invalid objective reading (>= 0).
         context: a ``caproto.threading.client.Context`` to share (not closed by :meth:`close`).
         retry_interval: seconds between the attempts of one reading (>= 0).
+        stale_timeout: seconds a reading may wait for the objective PV's timestamp to advance
+            (> 0; default 10).
+        stale_poll: seconds between reads of a stale objective PV (> 0; default 0.05).
+        check_control_limits: refuse bounds outside the setpoint PVs' control limits (default
+            true).
 
     Raises:
-        ValueError: inconsistent names/bounds/options, or readbacks outside the bounds at start.
+        ValueError: inconsistent names/bounds/options, readbacks outside the bounds at start, or
+            bounds outside the IOC's control limits.
         MachineError: some PVs did not connect within ``timeout`` (all are listed).
 
     Attributes:
         n_reads: valid objective readings taken; n_invalid_readings: those retried or failed.
+        control_limits: ``2 x d`` control limits of the setpoint PVs (NaN where none).
+        last_reading: ``{"stamps": [...], "stale_polls": n}`` of the last :meth:`read` (CA
+            timestamps of its readings, UNIX seconds; reads of a value not yet updated).
 
     Not thread-safe: use one machine from one thread. Use as a context manager (or call
     :meth:`close`) to release the CA connections.
@@ -234,6 +325,9 @@ class EpicsMachine(GuardedMachine):
         read_retries: int = 2,
         context=None,
         retry_interval: float = 0.1,
+        stale_timeout: float = 10.0,
+        stale_poll: float = 0.05,
+        check_control_limits: bool = True,
     ) -> None:
         # Everything that can be checked without the control system is checked first.
         names = [str(n) for n in knob_names]
@@ -261,8 +355,15 @@ class EpicsMachine(GuardedMachine):
             raise ValueError(f"read_retries must be an integer >= 0, got {read_retries}")
         self.n_average = int(n_average)
         self.read_retries = int(read_retries)
+        self.stale_timeout = float(stale_timeout)
+        self.stale_poll = float(stale_poll)
+        for key, value in (("stale_timeout", self.stale_timeout), ("stale_poll", self.stale_poll)):
+            if not (0.0 < value < math.inf):
+                raise ValueError(f"{key} must be positive and finite, got {value}")
         self.n_reads = 0
         self.n_invalid_readings = 0
+        self.last_reading: dict | None = None
+        self._last_stamp: float | None = None
         self._closed = False
 
         self._ca = _CaprotoAdapter(context, timeout=self.timeout)
@@ -275,6 +376,12 @@ class EpicsMachine(GuardedMachine):
                     f"{len(missing)} PV(s) did not connect within {self.timeout:g} s: "
                     + ", ".join(missing)
                 )
+            limits = self._ca.control_limits(self.setpoint_pvs, self.timeout)
+            self.control_limits = torch.tensor(
+                [[lo for lo, _, _ in limits], [hi for _, hi, _ in limits]], dtype=DTYPE
+            )
+            if check_control_limits:
+                _check_control_limits(names, bounds, limits)
             x_now = torch.tensor(self._read_knobs(), dtype=DTYPE)
             try:
                 check_setting(x_now, bounds)
@@ -341,6 +448,20 @@ class EpicsMachine(GuardedMachine):
         self._check_open()
         return torch.tensor(self._read_knobs(), dtype=DTYPE)
 
+    def setpoints(self) -> torch.Tensor:
+        """The setpoint PVs read over CA now (``d`` float64).
+
+        Raises:
+            MachineError: a setpoint could not be read within ``timeout``.
+        """
+        self._check_open()
+        return torch.tensor(self._ca.read_many(self.setpoint_pvs, self.timeout), dtype=DTYPE)
+
+    @property
+    def disconnections(self) -> int:
+        """Channel disconnections seen since the machine connected (all its PVs)."""
+        return self._ca.disconnections if self._ca is not None else 0
+
     def set(self, x) -> None:
         """Check ``x`` against the bounds and ``max_step`` (from the readbacks), then apply it.
 
@@ -377,14 +498,42 @@ class EpicsMachine(GuardedMachine):
                 )
             time.sleep(min(READBACK_POLL_S, max(0.0, deadline - time.monotonic())))
 
-    def _one_reading(self) -> float:
-        """One valid reading of the objective PV, with up to ``read_retries`` retries."""
+    def _fresh_reading(self, info: dict) -> float:
+        """One reading whose timestamp is newer than the previous valid one (polls while not).
+
+        Raises:
+            MachineError: the read failed.
+            StaleReadingError: no newer timestamp within ``stale_timeout``.
+        """
+        deadline = time.monotonic() + self.stale_timeout
+        while True:
+            value, stamp = self._ca.read_timed(self.objective_pv, self.timeout)
+            if self._last_stamp is None or stamp > self._last_stamp or not math.isfinite(value):
+                break
+            if time.monotonic() >= deadline:
+                raise StaleReadingError(
+                    f"{self.objective_pv} has not updated for {self.stale_timeout:g} s "
+                    f"(timestamp {stamp:.6f} not newer than the previous reading's; "
+                    "a frozen PV or a stopped IOC record)"
+                )
+            info["stale_polls"] += 1
+            time.sleep(min(self.stale_poll, max(0.0, deadline - time.monotonic())))
+        if math.isfinite(value):
+            self._last_stamp = stamp
+            info["stamps"].append(stamp)
+        return value
+
+    def _one_reading(self, info: dict) -> float:
+        """One valid, fresh reading of the objective PV, with up to ``read_retries`` retries."""
         reasons = []
         for attempt in range(self.read_retries + 1):
             if attempt > 0 and self.retry_interval > 0:
                 time.sleep(self.retry_interval)
             try:
-                (value,) = self._ca.read_many([self.objective_pv], self.timeout)
+                value = self._fresh_reading(info)
+            except StaleReadingError:
+                self.n_invalid_readings += 1
+                raise
             except MachineError as err:
                 reasons.append(str(err))
             else:
@@ -404,13 +553,16 @@ class EpicsMachine(GuardedMachine):
         Raises:
             ReadError: a reading was still invalid (NaN/inf, timeout, disconnected) after
                 ``read_retries`` retries.
+            StaleReadingError: the objective PV did not update within ``stale_timeout``.
         """
         self._check_open()
+        info: dict = {"stamps": [], "stale_polls": 0}
+        self.last_reading = info
         total = 0.0
         for k in range(self.n_average):
             if k > 0 and self.average_interval > 0:
                 time.sleep(self.average_interval)
-            total += self._one_reading()
+            total += self._one_reading(info)
         return total / self.n_average
 
     # ------------------------------------------------------------------ lifetime

@@ -62,10 +62,11 @@ def test_a_run_prints_steps_and_a_summary_and_restores_the_knobs(tmp_path, capsy
     assert cli.main(["optimize", "--config", write_config(tmp_path)]) == 0
     out = capsys.readouterr().out
     log = read_log(tmp_path / "run.jsonl")
-    steps = [line for line in out.splitlines() if line.startswith("step ")]
-    assert log.n_evaluations == 5 and len(steps) == 5 and steps[-1].startswith("step    4/5")
+    steps = [line for line in out.splitlines() if line.startswith("evaluation ")]
+    assert log.n_evaluations == 5 and len(steps) == 5
+    assert steps[0].startswith("evaluation    1/5") and steps[-1].startswith("evaluation    5/5")
     step, _, y = log.best()
-    assert f"best y = {y:.6g} at step {step}" in out
+    assert f"best y = {y:.6g} at evaluation {step + 1}" in out
     assert "status: completed" in out and "knobs restored to initial" in out
     assert log.last_end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
     assert log.header["config"]["budget"] == 5 and log.header["knob_names"] == KNOBS
@@ -129,12 +130,17 @@ CHILD = (
 
 @pytest.mark.parametrize(
     ("signum", "code"),
-    [(signal.SIGINT, 130), pytest.param(signal.SIGTERM, 143, marks=pytest.mark.slow)],
-    ids=["SIGINT", "SIGTERM"],
+    [
+        (signal.SIGINT, 130),
+        pytest.param(signal.SIGTERM, 143, marks=pytest.mark.slow),
+        (signal.SIGHUP, 129),
+    ],
+    ids=["SIGINT", "SIGTERM", "SIGHUP"],
 )
 def test_a_signal_stops_the_process_and_the_knobs_are_restored(tmp_path, signum, code):
-    """SIGINT / SIGTERM after a few logged evaluations: the process exits promptly with
-    130 / 143, the log ends 'interrupted' and the final readback equals the initial knobs."""
+    """SIGINT / SIGTERM / SIGHUP (terminal closed) after a few logged evaluations: the process
+    exits promptly with 130 / 143 / 129, the log ends 'interrupted' and the final readback
+    equals the initial knobs."""
     config = write_config(tmp_path, budget=100_000)
     log_path = tmp_path / "run.jsonl"
     env = {
@@ -153,7 +159,7 @@ def test_a_signal_stops_the_process_and_the_knobs_are_restored(tmp_path, signum,
         try:
             deadline = time.monotonic() + 120
             while time.monotonic() < deadline and proc.poll() is None:
-                if log_path.exists() and log_path.read_text().count('"evaluation"') >= 3:
+                if log_path.exists() and log_path.read_text().count('"type":"evaluation"') >= 3:
                     break
                 time.sleep(0.1)
             assert proc.poll() is None, (tmp_path / "err.txt").read_text()
@@ -207,3 +213,51 @@ def test_a_run_over_channel_access_against_the_simulated_ioc(tmp_path, capsys):
     assert log.starts[0]["initial_knobs"] == pytest.approx(start.tolist(), abs=1e-8)
     assert log.last_end["final_knobs"] == pytest.approx(start.tolist(), abs=1e-8)
     assert len(set(map(tuple, log.X().tolist()))) == 5  # five different settings were measured
+
+
+def test_help_lists_every_method_and_the_exit_codes(capsys):
+    """`pigp optimize --help` names every method of the run files and documents each exit
+    status, the one for knobs NOT restored and the one for a refused lock included."""
+    from pigp_torch.config import METHOD_NAMES
+
+    with pytest.raises(SystemExit):
+        cli.main(["optimize", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in METHOD_NAMES:
+        assert name in text
+    assert "3 the knobs were NOT restored" in text and "4 refused: another run holds" in text
+    assert "129 stopped by SIGHUP" in text
+
+
+def test_dry_run_checks_the_log_path_and_prints_warnings(tmp_path, capsys):
+    """--dry-run refuses an existing log (as the run would) and a log folder it cannot write,
+    and prints the step-limit warnings."""
+    (tmp_path / "run.jsonl").write_text("")
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--dry-run"]) == 2
+    assert "exists: continue it with --resume" in capsys.readouterr().err
+    config = write_config(tmp_path, "big.yaml", log="big.jsonl", max_step=0.5)
+    assert cli.main(["optimize", "--config", config, "--dry-run"]) == 0
+    assert "warning: max_step above 10 % of the knob's range" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")  # a folder that cannot exist: a file is in the way
+    config = write_config(tmp_path, "bad.yaml", log="file/sub/run.jsonl")
+    assert cli.main(["optimize", "--config", config, "--dry-run"]) == 2
+    assert "cannot be created" in capsys.readouterr().err
+
+
+def test_resume_without_config_prints_the_verified_safety_limits(tmp_path, capsys):
+    """--resume LOG alone: the header's configuration is verified against its sha256 and its
+    safety limits are printed; an edited header (a doubled step limit) exits 2."""
+    short = write_config(tmp_path, "b.yaml", budget=5, log="b.jsonl")
+    assert cli.main(["optimize", "--config", short, "--quiet"]) == 0
+    log = tmp_path / "b.jsonl"
+    lines = log.read_text().splitlines(keepends=True)  # as if killed after 3 evaluations
+    third = [k for k, line in enumerate(lines) if '"type":"evaluation"' in line][2]
+    log.write_text("".join(lines[: third + 1]))
+    assert cli.main(["optimize", "--resume", str(log), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "sha256 verified" in out and "max_step: 0.1" in out
+    lines = log.read_text().splitlines(keepends=True)
+    lines[0] = lines[0].replace('"max_step":0.1', '"max_step":0.2')
+    log.write_text("".join(lines))
+    assert cli.main(["optimize", "--resume", str(log), "--dry-run"]) == 2
+    assert "does not match its sha256" in capsys.readouterr().err

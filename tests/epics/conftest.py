@@ -103,6 +103,8 @@ def ca_context(broadcaster):
 def reset(handle, client) -> None:
     client.write(handle.readback_delay_pv, 0.0)
     client.write(handle.nan_readings_pv, 0)
+    client.write(handle.frozen_pv, 0)
+    client.write(handle.reboot_on_read_pv, 0)
     client.write_many(handle.setpoint_pvs, torch.zeros(len(handle.knob_names)))
 
 

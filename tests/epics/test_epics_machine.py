@@ -101,17 +101,28 @@ def test_max_step_is_measured_from_the_readbacks(ioc, probe, ca_context):
         m.set(moved + 5e-4)  # a small step from the real position is fine
 
 
-def test_put_refused_by_the_ioc_raises_machine_error(ioc, probe, ca_context):
-    """Machine bounds wider than the IOC's limits: the IOC refuses, the machine raises."""
-    d = len(ioc.knob_names)
-    lim = torch.full((d,), 40.0, dtype=torch.float64)
-    x = torch.zeros(d, dtype=torch.float64)
-    x[0] = 35.0  # inside the machine's bounds, outside the IOC's +-30 A
-    with make_machine(ioc, ca_context, bounds=torch.stack([-lim, lim])) as m:
+def test_put_refused_by_the_ioc_raises_machine_error(ioc, probe, ca_context, ring):
+    """Machine bounds wider than the IOC's limits (the start-up check switched off): the IOC
+    refuses the put, the machine raises."""
+    wide = ring.bounds * 4 / 3
+    x = torch.zeros(len(ioc.knob_names), dtype=torch.float64)
+    x[0] = float(ring.bounds[1, 0]) * 1.2  # inside the machine's bounds, outside the IOC's
+    with make_machine(ioc, ca_context, bounds=wide, check_control_limits=False) as m:
         with pytest.raises(MachineError, match=r"no answer to put \['01G-QSS4:CurrSetpt'\]"):
             m.set(x)
     assert probe.read(ioc.setpoint_pvs[0]) == 0.0
     assert probe.read(ioc.readback_pvs[0]) == 0.0
+
+
+def test_bounds_outside_the_ioc_control_limits_are_refused_at_start(ioc, ca_context, ring):
+    """Bounds wider than the setpoint PVs' DRVL/DRVH: ValueError at connection, naming the knob
+    and both ranges; bounds inside them are accepted and the limits are kept."""
+    wide = ring.bounds.clone()
+    wide[1, 2] = float(ring.bounds[1, 2]) * 2
+    with pytest.raises(ValueError, match=rf"{ioc.knob_names[2]}: bounds .* outside DRVL/DRVH"):
+        make_machine(ioc, ca_context, bounds=wide)
+    with make_machine(ioc, ca_context, bounds=ring.bounds / 2) as m:
+        assert torch.equal(m.control_limits, ring.bounds)
 
 
 def test_nan_readings_are_retried(ioc, probe, ca_context):

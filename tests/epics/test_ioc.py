@@ -52,6 +52,8 @@ def test_pv_names_limits_and_initial_values():
         "T:BeamLossRate",
         "T:Sim:ReadbackDelay",
         "T:Sim:NanReadings",
+        "T:Sim:Frozen",
+        "T:Sim:RebootOnRead",
     ]
     assert ioc.loss_rate_pv == "T:BeamLossRate"
     assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]
@@ -112,9 +114,62 @@ def test_nan_readings_count_client_reads():
         return [await ioc._on_read() for _ in range(3)]
 
     values = asyncio.run(reads())
-    assert [v != v for v in values] == [True, True, False]
-    assert values[2] == 0.5  # 1 - 0.25 - 0.25
+    assert [v != v for v in values[:2]] == [True, True]
+    assert values[2] is None  # the stored value is served ...
+    assert ioc.loss_rate.value == 0.5  # ... and it is the published one again: 1 - 0.25 - 0.25
     assert ioc.nan_readings.value == 0
+
+
+def test_client_reads_keep_the_refresh_timestamp_and_frozen_stops_refreshes():
+    """A client read does not renew the loss rate's timestamp; with Sim:Frozen = 1 the refresh
+    loop publishes nothing (value and timestamp stay), with 0 it publishes again."""
+    from caproto import ChannelType
+
+    ioc = make_ioc(x_init=[0.5, 0.5])
+    ioc.update_period = 0.02
+
+    class Lib:  # the async_lib the server passes to startup hooks
+        class library:
+            sleep = staticmethod(asyncio.sleep)
+
+    async def scenario():
+        task = asyncio.ensure_future(ioc._refresh_loop(Lib))
+        await asyncio.sleep(0.05)
+        await ioc.frozen.write(1)
+        await asyncio.sleep(0.03)
+        stamp = ioc.loss_rate.timestamp
+        for _ in range(3):
+            await ioc.loss_rate.read(ChannelType.TIME_DOUBLE)
+        await asyncio.sleep(0.1)
+        frozen_stamp = ioc.loss_rate.timestamp
+        await ioc.frozen.write(0)
+        await asyncio.sleep(0.1)
+        task.cancel()
+        return stamp, frozen_stamp, ioc.loss_rate.timestamp
+
+    stamp, frozen_stamp, later = asyncio.run(scenario())
+    assert frozen_stamp == stamp and later > stamp
+
+
+def test_reboot_on_read_drops_the_knobs_to_their_power_on_values():
+    """Sim:RebootOnRead = 2: the first read changes nothing, the second is answered and then
+    every setpoint and readback is back at the initial knobs."""
+    ioc = make_ioc(x_init=[0.5, -1.0])
+
+    async def scenario():
+        await ioc.setpoints[0].write(0.25)
+        await ioc.setpoints[1].write(1.5)
+        await ioc.reboot_on_read.write(2)
+        await ioc._on_read()
+        first = [sp.value for sp in ioc.setpoints]
+        await ioc._on_read()
+        return first
+
+    first = asyncio.run(scenario())
+    assert first == [0.25, 1.5]
+    assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]
+    assert [rb.value for rb in ioc.readbacks] == [0.5, -1.0]
+    assert ioc.reboot_on_read.value == 0
 
 
 def test_noise_is_the_seeded_simulated_machine_noise():
@@ -273,3 +328,63 @@ def test_start_sim_ioc_reports_a_failed_start():
     with pytest.raises(RuntimeError, match=r"(?s)simulated IOC exited with code 1.*noise must be"):
         with start_sim_ioc(1, noise=-1.0, startup_timeout=60):
             pass  # pragma: no cover - never reached
+
+
+def test_a_single_winding_is_accepted_by_knobs():
+    """`--knobs 01G-QSS4` (one winding, no comma) is a list of one; sets stay names; unknown
+    windings are refused with the simulator's message."""
+    import argparse
+
+    from pigp_torch.ringargs import add_ring_arguments, ring_spec_from_args
+
+    parser = add_ring_arguments(argparse.ArgumentParser())
+
+    def spec(text):
+        return ring_spec_from_args(parser.parse_args(["--knobs", text]))
+
+    assert spec("01G-QSS4").knobs == ("01G-QSS4",)
+    assert spec("01G-QSS4, 02G-QSS3").knobs == ("01G-QSS4", "02G-QSS3")
+    assert spec("paper13").knobs == "paper13"
+    with pytest.raises(ValueError, match="unknown winding names"):
+        spec("NOT-A-WINDING").build(1)
+
+
+@pytest.mark.slow  # a Python start with torch and pyAT imports (~5-10 s)
+def test_serve_sim_started_in_the_background_stops_on_sigterm(tmp_path):
+    """`pigp serve-sim --knobs 01G-QSS4` started as a script's background job (SIGINT ignored)
+    serves the one knob and exits 0 on SIGTERM."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    port = free_port()
+    code = (
+        "import argparse, sys; from pigp_torch.commands import serve_sim; "
+        "p = argparse.ArgumentParser(); serve_sim.register(p.add_subparsers(), None); "
+        "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))"
+    )
+    cmd = [sys.executable, "-c", code, "serve-sim", "--port", str(port), "--knobs", "01G-QSS4"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    log = tmp_path / "serve-sim.log"
+    with open(log, "wb") as sink:
+        proc = subprocess.Popen(  # as `cmd &` in a script: SIGINT ignored
+            cmd,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        )
+    try:
+        deadline = time.monotonic() + 90
+        while "  SPEAR:Sim:RebootOnRead" not in (out := log.read_text()):
+            assert proc.poll() is None and time.monotonic() < deadline, out
+            time.sleep(0.1)
+        assert "  01G-QSS4:CurrSetpt\n" in out and "02G-QSS3" not in out
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0, log.read_text()
+        assert "simulated IOC stopped" in log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
