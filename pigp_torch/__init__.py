@@ -1,8 +1,8 @@
 """pigp-torch: physics-informed Gaussian-process Bayesian optimization for particle accelerators.
 
-The package follows the method's chain (see DESIGN.md): ``simulation`` (SPEAR3-like coupling
-model) -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision matrix) -> ``kernels``
-and ``models`` (GPs) -> ``optimizers`` (ask/tell) -> ``optimize`` (the loop).
+The package follows the method's chain: ``simulation`` (coupling model of a storage ring;
+the real SPEAR3 shipped) -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision
+matrix) -> ``kernels`` and ``models`` (GPs) -> ``optimizers`` (ask/tell) -> ``optimize`` (the loop).
 
 Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a
 multi-threaded OpenBLAS on a busy machine, set ``OPENBLAS_NUM_THREADS=1`` before importing numpy

@@ -31,7 +31,7 @@ def find_optimum(
     .. math:: \mathbf x_0 = \arg\max_{\mathbf l \le \mathbf x \le \mathbf u} f(\mathbf x)
 
     The search runs in unit-cube coordinates :math:`\mathbf x = \mathbf l + (\mathbf u -
-    \mathbf l) \odot \mathbf z` (knob ranges such as ±0.015 would otherwise make the problem
+    \mathbf l) \odot \mathbf z` (knob ranges such as ±30 A would otherwise make the problem
     badly scaled). Starts: ``n_starts`` points of a scrambled Sobol sequence seeded with ``seed``,
     plus every row of ``x_init``. Deterministic for a given ``seed``. Non-finite values of ``f``
     (e.g. a setting without a stable beam) are penalized so the search leaves them.

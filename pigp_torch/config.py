@@ -3,7 +3,7 @@ r"""Run configuration of ``pigp optimize``: validated models, loading, and build
 A run file (YAML or JSON) names everything a run on a machine needs; it is validated as a whole
 (pydantic v2, unknown keys refused) before anything is connected or moved::
 
-    machine:                      # sim: the simulated SPEAR3-like ring; epics: Channel Access
+    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access
       kind: sim
       error_seed: 1
       noise: 0.04                 # mA/min

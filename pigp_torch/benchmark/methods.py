@@ -31,7 +31,7 @@ Defaults (documented choices):
   ``pigp-physics-box``: the same with what the model ring alone gives, the method before the
   ensemble: its own shape and the isotropic box prior on the centre (1 half-range).
 * ``nelder-mead``: adaptive coefficients, ``initial_simplex_size = 0.05`` of each knob's full
-  range (= ±0.1 in the normalized units, ~1.5e-3 1/m), restarts when converged.
+  range (= ±0.1 in the normalized units, 3 A on SPEAR3), restarts when converged.
 * ``rcds``: ``noise = 0.04`` (the machine's), initial ``step = 0.05`` of the knob range,
   coordinate directions.
 """

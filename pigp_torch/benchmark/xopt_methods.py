@@ -14,7 +14,7 @@ Methods (:data:`XOPT_METHODS`, registered into
   standardized, noise learned with a Gamma(1.1, 0.05) prior, all refitted by L-BFGS at every
   step on the run's data), acquisition optimized by ``LBFGSOptimizer`` (20 restarts from 20 raw
   samples, up to 1000 iterations), **no** ``max_travel_distances`` (Xopt's default: each step may
-  go anywhere in the ±0.015 1/m box) and no TuRBO. Like every method it starts from the single
+  go anywhere in the ±30 A box) and no TuRBO. Like every method it starts from the single
   skews-off reading (no random initial design: a control-room user starts from the machine's
   state). One deviation from the stock object: ``numerical_optimizer.max_time = None`` instead of
   5 s, so a run does not depend on the load of the computer (a step, GP fit plus acquisition,

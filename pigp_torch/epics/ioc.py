@@ -506,7 +506,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(
         prog="python -m pigp_torch.epics.ioc",
-        description="Serve a simulated SPEAR3-like ring over EPICS Channel Access on 127.0.0.1.",
+        description="Serve a simulated ring (SPEAR3 by default) over EPICS Channel Access on "
+        "127.0.0.1.",
     )
     add_ioc_arguments(p)
     args = p.parse_args(argv)

@@ -15,10 +15,9 @@ the Hessian of :math:`\log(f - f_\infty)` at the model's optimum is :math:`-B_m 
 
 .. math:: B = 2\, c_m\, \Sigma .
 
-Measured on the simulated SPEAR3-like rings: along the eigenvectors of this :math:`B` (model seed
-0) the machines' own Hessians of :math:`g` at their optima agree within 5-30 % (the weakest
-direction within a factor 2.5), while the machines' minima :math:`c` and centres
-:math:`\boldsymbol\mu` are unrelated to the model's. Any one ring's shape carries its own errors;
+The machines' own shapes resemble the model's (the optics decide the directions), while their
+minima :math:`c` and centres :math:`\boldsymbol\mu` are unrelated to the model's. Any one ring's
+shape carries its own errors;
 the mean shape over an error ensemble of model rings
 (:attr:`PhysicsPrior.peak_shape <pigp_torch.prior.PhysicsPrior>`, option ``shape``) averages
 them out and is the better estimate for an unseen machine. So the machine-specific unknowns are
@@ -74,8 +73,7 @@ class InverseSqrtPeakModel:
         center_cov: ``d x d`` covariance :math:`C_e` of machine optima over an ensemble of
             model rings (:attr:`PhysicsPrior.center_cov <pigp_torch.prior.PhysicsPrior>`); the
             centre prior is then :math:`\mathcal N(\boldsymbol\mu_0, C_\mu)` with
-            :math:`C_\mu = k\,C_e + (s_0 \mathbf h)^2 I`. Measured on the 12-seed spear3-13
-            benchmark: it takes the gain after 40 evaluations from 0.47 to about 0.9 (median).
+            :math:`C_\mu = k\,C_e + (s_0 \mathbf h)^2 I`.
         center_cov_scale: :math:`k`, inflation of the ensemble covariance (the machines are
             not the model rings; 3 by default, 1.5 stalled runs near the optimum).
         center_floor_std: :math:`s_0`, isotropic floor in half-ranges, so that directions in
@@ -85,9 +83,8 @@ class InverseSqrtPeakModel:
         residual_std: amplitude of the residual GP (objective units; ``0`` switches it off).
         f_inf_std: if ``> 0``, the background is fitted too, as :math:`f_\infty + \delta` with
             :math:`\delta \sim \mathcal N(0, s_f^2)` (objective units; the prior's
-            :math:`f_\infty` belongs to the model ring); ``0`` keeps :math:`f_\infty` fixed.
-            Measured on the 12-seed spear3-13 benchmark with ``s_f = 0.05``: gain after 100
-            evaluations median 0.78 against 0.89 with it fixed, so fixed is the default.
+            :math:`f_\infty` belongs to the model ring); ``0`` (default) keeps :math:`f_\infty`
+            fixed.
         shape: ``d x d`` shape :math:`B` to use instead of the model ring's
             :math:`2 c_m \Sigma`, e.g. the ensemble mean
             :attr:`PhysicsPrior.peak_shape <pigp_torch.prior.PhysicsPrior>` (``None``: the

@@ -50,19 +50,14 @@ class PhysicsModelBO(AskTellOptimizer):
             :meth:`centre_information` instead of the UCB: the reading that most shrinks the
             fitted centre's uncertainty in the metric of :math:`B`. Near the peak the form is
             flat, so readings there say little about where the centre is; the most informative
-            ones lie at about :math:`\sqrt{c/2}` from it in that metric. Measured on the
-            12-seed spear3-13 benchmark with ``info_every=2`` (60 evaluations): 6 machines at
-            95 % of the gain, 3 within 40 evaluations, median gain after 40 0.927, against 6, 3
-            and 0.922 without; no gain, so off by default.
+            ones lie at about :math:`\sqrt{c/2}` from it in that metric. Off by default.
         adapt_box: shrink and grow the trust box like TuRBO (Eriksson et al. 2019), counting
             asks: a *success* when the best posterior mean over the told points rose by more
             than ``success_tol`` since the previous ask, else a *failure*;
             ``success_streak`` successes in a row double the half-width (up to ``step_limit``),
             ``failure_streak`` failures in a row halve it (down to ``min_step_limit``). A box
             that keeps missing (the model's peak moved, the reading did not follow) thus turns
-            the method into a local search around the best point. Measured on the 12-seed
-            spear3-13 benchmark (with ``f_inf_std=0.05``): gain after 100 evaluations median
-            0.81 against 0.89 without; off by default.
+            the method into a local search around the best point. Off by default.
         min_step_limit, success_streak, failure_streak: the adaptation's floor and streaks.
         success_tol: improvement of the best posterior mean that counts as a success
             (default: a quarter of the model's noise).
@@ -71,14 +66,11 @@ class PhysicsModelBO(AskTellOptimizer):
             ``"ensemble"``: from the error ensemble of the model rings,
             :attr:`prior.center_cov <pigp_torch.prior.PhysicsPrior>`; ``"box"``: isotropic,
             ``center_std`` half-ranges around the box centre; ``"auto"`` (default): the
-            ensemble when the prior has one. Measured on the 12-seed spear3-13 benchmark, the
-            ensemble prior reaches 95 % of the gain within 100 evaluations on 7 machines
-            instead of 5, median gain after 40 evaluations 0.89 instead of 0.66.
+            ensemble when the prior has one.
         shape_prior: shape :math:`B` of the physics form: ``"ensemble"``: the mean over the
             error ensemble, :attr:`prior.peak_shape <pigp_torch.prior.PhysicsPrior>`;
             ``"model"``: the model ring's own, :math:`2 c_m \Sigma`; ``"auto"`` (default): the
-            ensemble's when the prior has one (measured gain: see
-            :func:`~pigp_torch.simulation.ensemble.mean_shape`).
+            ensemble's when the prior has one.
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).

@@ -37,8 +37,8 @@ Speed (why the code looks the way it does; ratios measured on 2 CPU cores, see
   row/column updates instead of matrix products;
 * per-sample 6×6 products (the doubling) go through numpy on the CPU (its stacked 6×6 ``matmul``
   is 2-4x faster than ``torch.bmm``) and through ``torch.matmul`` on other devices;
-* the doubling count comes from the damping of the knobs-off ring (:math:`2^k (1-\rho) \ge 32`:
-  18 doublings for the SPEAR3-like ring instead of 21);
+* the doubling count comes from the damping of the knobs-off ring (:math:`2^k (1-\rho) \ge 32`),
+  not from a fixed worst case;
 * without autograd, updates are in place (no large temporaries);
 * :func:`equilibrium_chunked` evaluates 2k-row chunks (cache-sized) on several threads.
 
@@ -194,7 +194,7 @@ def doubling_count(one_turn: np.ndarray, exponent: float = DAMPING_EXPONENT) -> 
     default 32 a setting whose slowest damping rate is half the knobs-off one still has residual
     ≈ e^-16 < :data:`RESIDUAL_TOL` (tail ≈ 1e-14); below ~0.43 of it the setting is flagged
     unstable. Skew knobs only share damping between x and y (Robinson's sum is fixed), so in
-    practice the rate barely moves (SPEAR3-like ring: 1.439e-4 → 1.436e-4 per turn in the box).
+    practice the rate barely moves inside the knob box.
     """
     rho = float(max(abs(np.linalg.eigvals(one_turn))))
     if not rho < 1 - 1e-12:
