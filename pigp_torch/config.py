@@ -801,6 +801,10 @@ def check_resume(config: RunConfig, records) -> None:
     logged = dict(records.header.get("config") or {})
     if not logged:
         raise ConfigError(f"{records.path}: the log holds no configuration to continue")
+    try:  # defaults of keys added since the log was written are filled in
+        logged = validate_config(logged, source=str(records.path)).model_dump(mode="json")
+    except ConfigError:
+        pass  # compared as logged: the differences are named below
     now = config.model_dump(mode="json")
     keys = (set(now) | set(logged)) - {"budget", "log"}
     differ = sorted(k for k in keys if now.get(k) != logged.get(k))
