@@ -126,10 +126,14 @@ class EpicsMachineConfig(_Section):
     tolerance is ``tolerance`` (knob units) or ``tolerance_fraction`` (of each knob's range);
     with neither, the machine's default (a millionth of the range: right for a simulated IOC,
     too tight for a real magnet's noisy readback). ``stale_timeout`` (s, default 10): how long
-    a reading may wait for the objective PV's timestamp to advance.
+    a reading may wait for the objective PV's timestamp to advance. ``protocol``: ``ca``
+    (Channel Access, :class:`~pigp_torch.machine.epics.EpicsMachine`, default) or ``pva``
+    (pvAccess, :class:`~pigp_torch.machine.pva.PvaMachine`, the ``pva`` extra; the client is
+    configured from ``EPICS_PVA_*`` in the environment).
     """
 
     kind: Literal["epics"]
+    protocol: Literal["ca", "pva"] = "ca"
     setpoint_pvs: dict[str, str] | None = None
     readback_pvs: dict[str, str] | None = None
     setpoint_suffix: str = ":CurrSetpt"
@@ -674,7 +678,10 @@ def build_machine(config: RunConfig):
             max_step=config.machine_max_step(),
             x_init=x_init,
         )
-    from pigp_torch.machine.epics import EpicsMachine  # lazily: needs caproto / pyepics
+    if m.protocol == "pva":
+        from pigp_torch.machine.pva import PvaMachine as EpicsMachine  # lazily: needs p4p
+    else:
+        from pigp_torch.machine.epics import EpicsMachine  # lazily: needs caproto
 
     def pv_list(pvs: dict[str, str] | None) -> list[str] | None:
         return None if pvs is None else [pvs[n] for n in names]
@@ -801,6 +808,10 @@ def check_resume(config: RunConfig, records) -> None:
     logged = dict(records.header.get("config") or {})
     if not logged:
         raise ConfigError(f"{records.path}: the log holds no configuration to continue")
+    try:  # defaults of keys added since the log was written are filled in
+        logged = validate_config(logged, source=str(records.path)).model_dump(mode="json")
+    except ConfigError:
+        pass  # compared as logged: the differences are named below
     now = config.model_dump(mode="json")
     keys = (set(now) | set(logged)) - {"budget", "log"}
     differ = sorted(k for k in keys if now.get(k) != logged.get(k))

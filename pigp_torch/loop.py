@@ -53,8 +53,9 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    abandons the restore).
 6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
    dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
-   restore, then re-raise. The handlers are installed only in the main thread and the previous
-   ones are always put back.
+   restore, then re-raise; a SIGHUP that was ignored when the run started (``nohup``) stays
+   ignored. The handlers are installed only in the main thread and the previous ones are always
+   put back.
 7. *Intent records.* With a log, every ``set`` the loop sends is preceded by an ``intent``
    record (the setting about to be written, the purpose, the step), written and fsynced before
    the write: after a crash (SIGKILL, power cut) the log holds the last commanded setting.
@@ -191,6 +192,12 @@ class _SignalGuard:
     def __enter__(self) -> _SignalGuard:
         if self.enabled:
             for s in self.SIGNALS:
+                if (
+                    s != signal.SIGINT
+                    and s != signal.SIGTERM
+                    and signal.getsignal(s) == signal.SIG_IGN
+                ):
+                    continue  # SIGHUP ignored on purpose (nohup): the run goes on
                 self._previous[s] = signal.signal(s, self._handler)
         return self
 
@@ -539,7 +546,13 @@ def optimize(
 
     def on_set(x: torch.Tensor, k: int, n: int) -> None:
         if log is not None:
-            log.log_intent(x, purpose=sent["purpose"], step=sent["step"], part=k, parts=n)
+            try:
+                log.log_intent(x, purpose=sent["purpose"], step=sent["step"], part=k, parts=n)
+            except Exception as err:
+                if not sent["purpose"].startswith("restore"):
+                    raise  # no move of a run without its intent on disk
+                # a restore goes on even when the log cannot be written (disk full)
+                warnings.warn(f"could not log the restore's intent: {err!r}", stacklevel=2)
         sent["last"] = x.tolist()
 
     def evaluate(x: torch.Tensor, ramp: bool, step: int) -> tuple[float, int]:

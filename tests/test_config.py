@@ -379,3 +379,16 @@ def test_tolerance_fraction_and_stale_timeout_reach_the_epics_machine(fake_epics
         validate_config(
             epics(machine={"kind": "epics", "tolerance": 1.0, "tolerance_fraction": 0.01})
         )
+
+
+def test_a_log_written_before_the_new_keys_still_resumes_with_its_run_file(tmp_path):
+    """A logged configuration without the keys added since (restore_attempts, lock_dir, ...)
+    matches the run file that has their defaults; a changed safety key is still refused."""
+    cfg = validate_config(sim(), base_dir=tmp_path)
+    header = build_run(cfg).header()
+    for key in ("restore_attempts", "restore_interval", "lock_dir"):
+        del header["config"][key]
+    RunLog.create(cfg.log, header).close()
+    check_resume(cfg, read_log(cfg.log))
+    with pytest.raises(ConfigError, match=r"differs from the logged run in \['restore_attempts'\]"):
+        check_resume(validate_config(sim(restore_attempts=5), base_dir=tmp_path), read_log(cfg.log))

@@ -517,3 +517,21 @@ def test_sighup_takes_the_sigterm_path(tmp_path):
     assert signal.getsignal(signal.SIGHUP) is previous and m.get().tolist() == INITIAL
     end = read_log(tmp_path / "r.jsonl").last_end
     assert end["status"] == "interrupted" and "SIGHUP" in end["reason"]
+
+
+def test_an_ignored_sighup_stays_ignored(tmp_path):
+    """Started under nohup (SIGHUP ignored), a run is not stopped by SIGHUP."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+
+        class HungUp(FaultyMachine):
+            def read(self):
+                if self.n_reads == 2:
+                    os.kill(os.getpid(), signal.SIGHUP)
+                return super().read()
+
+        table = optimize(HungUp(), Walk(BOUNDS), [-0.5, -0.5], 4, log=tmp_path / "r.jsonl")
+        assert len(table) == 4 and signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+        assert read_log(tmp_path / "r.jsonl").last_end["status"] == "completed"
+    finally:
+        signal.signal(signal.SIGHUP, previous)

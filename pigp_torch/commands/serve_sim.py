@@ -33,8 +33,11 @@ def register(sub, bench) -> None:
         help="serve a simulated ring over EPICS Channel Access on 127.0.0.1",
         description="Run a caproto IOC in the foreground that serves one simulated SPEAR3-like "
         "ring on 127.0.0.1: per knob <knob>:CurrSetpt (puts outside the bounds refused) and "
-        "<knob>:Curr1, the loss rate <prefix>BeamLossRate with Gaussian noise, and the "
-        "fault-injection switches <prefix>Sim:ReadbackDelay and <prefix>Sim:NanReadings.",
+        "<knob>:Curr1, the loss rate <prefix>BeamLossRate with Gaussian noise (its CA timestamp "
+        "is the time of its last refresh), and the fault-injection switches "
+        "<prefix>Sim:ReadbackDelay, <prefix>Sim:NanReadings, <prefix>Sim:Frozen (stop the "
+        "refreshes) and <prefix>Sim:RebootOnRead (knobs back to their power-on values at the "
+        "N-th read). SIGTERM and Ctrl-C stop it, also when started in the background.",
     )
     add_ioc_arguments(p)
     p.set_defaults(func=cmd_serve_sim)

@@ -45,8 +45,10 @@ the loop answers by putting the initial knobs back.
 same package as the simulated IOC (:mod:`pigp_torch.epics.ioc`), so the whole EPICS path is
 tested end to end over real Channel Access on the loopback interface. pyepics is the operators'
 usual client but needs the ``libca`` shared library and its environment; the CA calls are kept in
-the small adapter :class:`_CaprotoAdapter` (connect, read many, write many, close) so that a
-pyepics adapter with the same four methods can be added without touching :class:`EpicsMachine`.
+the small adapter :class:`_CaprotoAdapter` (connect, read many, read with timestamp, control
+limits, write many, close, a disconnection counter), named by the class attribute
+``_adapter_class``, so that another client (pyepics; pvAccess:
+:class:`pigp_torch.machine.pva.PvaMachine`) plugs in without touching :class:`EpicsMachine`.
 Limitation of caproto's client: a put that the server refuses (``ECA_PUTFAIL``, e.g. outside
 the IOC's control limits) is not reported as such; it shows as a put completion that never
 arrives and is reported here as a timeout (the other puts of that set may have been made; the
@@ -306,6 +308,10 @@ class EpicsMachine(GuardedMachine):
     :meth:`close`) to release the CA connections.
     """
 
+    #: The client adapter (connect, read_many, read_timed, control_limits, write_many, close,
+    #: disconnections); :class:`~pigp_torch.machine.pva.PvaMachine` swaps in pvAccess.
+    _adapter_class = _CaprotoAdapter
+
     def __init__(
         self,
         knob_names,
@@ -366,7 +372,7 @@ class EpicsMachine(GuardedMachine):
         self._last_stamp: float | None = None
         self._closed = False
 
-        self._ca = _CaprotoAdapter(context, timeout=self.timeout)
+        self._ca = self._adapter_class(context, timeout=self.timeout)
         try:
             missing = self._ca.connect(
                 [*self.setpoint_pvs, *self.readback_pvs, objective_pv], self.timeout

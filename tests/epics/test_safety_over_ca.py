@@ -9,6 +9,7 @@ bounded in time.
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -199,9 +200,11 @@ def test_a_frozen_objective_pv_stops_the_run(ioc, probe, ring, tmp_path):
             run_nm(m, ring, callback, log, budget=12)
         assert time.monotonic() - t0 < 20
     records = read_log(log)
-    assert records.n_evaluations == 2 and records.last_end["status"] == "aborted"
+    # a refresh published between step 1's reading and the freeze may still serve step 2
+    assert records.n_evaluations in (2, 3) and records.last_end["status"] == "aborted"
     stamps = [s for e in records.evaluations for s in e["reading"]["stamps"]]
-    assert len(stamps) == 2 and stamps[1] > stamps[0]
+    assert len(stamps) == records.n_evaluations
+    assert all(b > a for a, b in itertools.pairwise(stamps))
     assert torch.equal(probe.read_many(ioc.setpoint_pvs), torch.zeros(len(ioc.knob_names)))
 
 
