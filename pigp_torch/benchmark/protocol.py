@@ -3,7 +3,11 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
 * Machine ``s``: ``ring.build(s)`` (a :class:`~pigp_torch.simulation.spec.RingSpec`; default the
   SPEAR3 user-mode ring with the 13 knobs of the study, in amps) read through a
   :class:`~pigp_torch.machine.SimulatedMachine` with i.i.d. :math:`\mathcal N(0, 0.04^2)` noise;
-  every run starts at all skews zero.
+  every run starts at all skews zero. Each machine has its own loss-rate map, drawn from its seed
+  and never shown to the prior (:func:`machine_loss_map`): background
+  :math:`f_\infty (1 + d)` and Touschek scale :math:`g (1 + \epsilon)`, :math:`d \sim
+  U[-0.8, 0.3]`, :math:`\epsilon \sim U[-0.3, 0.3]` (vacuum, beam current and fill pattern set
+  them; no lattice model knows them). ``machine_maps=False`` gives every machine the model's.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
   with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors),
   with the same knob set as the machines (``knobs="paper13"``: the 13 windings of the paper;
@@ -28,6 +32,7 @@ import dataclasses
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -48,7 +53,36 @@ ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
 
+#: Spread of a machine's loss-rate map around the model's: background factor 1 + d, d uniform
+#: on ``background``; Touschek-scale factor 1 + e, e uniform on ``touschek``.
+MAP_SPREAD = {"background": (-0.8, 0.3), "touschek": (-0.3, 0.3)}
+
 _OPTIMA: dict[tuple, float] = {}
+
+
+def machine_loss_map(machine_seed: int, model_map, spread=None) -> tuple[float, float]:
+    r"""The loss-rate map :math:`(f_\infty (1 + d), g (1 + \epsilon))` of machine
+    ``machine_seed`` from the model's map ``(f_inf, g)`` (mA/min, mA/min m²).
+
+    :math:`d` and :math:`\epsilon` are uniform on the ranges of ``spread`` (default
+    :data:`MAP_SPREAD`), drawn from a generator seeded by the machine seed alone (the same map
+    for every method and every process).
+    """
+    spread = MAP_SPREAD if spread is None else spread
+    rng = np.random.default_rng([int(machine_seed), 0x4C4F5353])  # a stream of its own
+    d = rng.uniform(*spread["background"])
+    e = rng.uniform(*spread["touschek"])
+    return float(model_map[0]) * (1.0 + d), float(model_map[1]) * (1.0 + e)
+
+
+def build_machine(machine_seed: int, ring: RingSpec, machine_maps: bool = True) -> RingCoupling:
+    """Machine ``machine_seed`` of ``ring``, with its own loss-rate map unless ``machine_maps``
+    is false."""
+    sim = ring.build(int(machine_seed))
+    if not machine_maps:
+        return sim
+    own = machine_loss_map(machine_seed, sim.loss_rate_map)
+    return ring.build(int(machine_seed), loss_rate_map=own)
 
 
 def run_seed(method: str, machine_seed: int) -> int:
@@ -57,15 +91,21 @@ def run_seed(method: str, machine_seed: int) -> int:
 
 
 def machine_optimum(
-    machine_seed: int, n_starts: int = 8, *, knobs=None, ring: RingSpec | None = None
+    machine_seed: int,
+    n_starts: int = 8,
+    *,
+    knobs=None,
+    ring: RingSpec | None = None,
+    machine_maps: bool = False,
 ) -> float:
     """:math:`f^*` of machine ``machine_seed`` of ``ring`` (default SPEAR3; ``knobs`` overrides
-    its knob set) from zero knobs and ``n_starts`` Sobol starts of L-BFGS-B
-    (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per process."""
+    its knob set; with ``machine_maps`` its own loss-rate map) from zero knobs and ``n_starts``
+    Sobol starts of L-BFGS-B (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per
+    process."""
     spec = as_ring_spec(ring, knobs=knobs)
-    key = (int(machine_seed), int(n_starts), spec)
+    key = (int(machine_seed), int(n_starts), spec, bool(machine_maps))
     if key not in _OPTIMA:
-        sim = spec.build(key[0])
+        sim = build_machine(key[0], spec, machine_maps)
         _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
     return _OPTIMA[key]
 
@@ -142,8 +182,12 @@ def run_one(
     optimum_starts: int = 8,
     knobs=None,
     ring: RingSpec | None = None,
+    machine_maps: bool = True,
 ) -> pd.DataFrame:
     """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
+
+    The machine has its own loss-rate map (:func:`machine_loss_map`) unless ``machine_maps`` is
+    false; the prior always has the model's.
 
     ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
     The run executes with torch's default dtype set to float64 (the caller's is restored): BoTorch
@@ -155,7 +199,7 @@ def run_one(
     """
     spec_ring = as_ring_spec(ring, knobs=knobs)
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
-        sim = spec_ring.build(int(machine_seed))
+        sim = build_machine(int(machine_seed), spec_ring, machine_maps)
         if list(prior.knob_names) != list(sim.knob_names):
             raise ValueError(
                 f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
@@ -176,7 +220,8 @@ def run_one(
         table.insert(1, "machine_seed", int(machine_seed))
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
             return score_run(table, sim, float("nan"))
-        f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring)
+        f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring,
+                                 machine_maps=machine_maps)  # fmt: skip
         return score_run(table, sim, f_star)
 
 
@@ -207,6 +252,7 @@ def run_benchmark(
     scheduler: str | None = None,
     center_ensemble: int = ENSEMBLE_SIZE,
     ring: RingSpec | None = None,
+    machine_maps: bool = True,
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
@@ -236,6 +282,8 @@ def run_benchmark(
             overrides ``ring``'s.
         ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
             SPEAR3 user-mode ring, 13 knobs in amps).
+        machine_maps: every machine has its own loss-rate map (:func:`machine_loss_map`,
+            default); ``False``: the model's constants on every machine.
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
             scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
             127.0.0.1): one Dask task per run (:func:`~pigp_torch.benchmark.distributed.
@@ -318,6 +366,7 @@ def run_benchmark(
                 "archive_size": int(archive_size),
                 "optimum_starts": int(optimum_starts),
                 "ring": ring,
+                "machine_maps": bool(machine_maps),
             },
         )
         for spec in specs

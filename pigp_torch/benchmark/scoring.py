@@ -7,8 +7,12 @@ is evaluation 1).
 * Steps-to-:math:`p`: the first :math:`n` with :math:`f(x_n) \ge f_0 + p (f^* - f_0)`. A run that
   never reaches it scores ``budget + 1`` (its number of evaluations + 1), so medians and quartiles
   stay defined and an unreached run ranks behind every reached one; ``reached_95`` says which.
+* Steps-to-within: the first :math:`n` with :math:`f(x_n) \ge f^* - \max(0.05 (f^* - f_0),
+  \sigma_n)` (``steps_within``; ``budget + 1`` if never).
 * Gain after :math:`n`: the ``gain_fraction`` after :math:`n` evaluations (NaN if the run is
   shorter).
+* Compute per ask: ``ask_time_s`` of the evaluations after the start point, median and 90th
+  percentile per method (s).
 """
 
 from __future__ import annotations
@@ -28,17 +32,26 @@ def _check(df: pd.DataFrame) -> None:
         raise ValueError("benchmark table is empty")
 
 
-def run_scores(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.DataFrame:
-    r"""One row per run: steps-to-``fraction``, whether reached, gain after ``at``, final best.
+def _first(n: np.ndarray, hit: np.ndarray, budget: int) -> float:
+    idx = np.flatnonzero(hit)
+    return float(n[idx[0]]) if idx.size else float(budget + 1)
+
+
+def run_scores(
+    df: pd.DataFrame, fraction: float = 0.95, at=(20, 40, 100), noise: float = 0.04
+) -> pd.DataFrame:
+    r"""One row per run: steps-to-``fraction``, whether reached, steps-to-within, gain after
+    ``at``, final best.
 
     Args:
         df: table of :func:`~pigp_torch.benchmark.run_benchmark` (or with its score columns).
         fraction: :math:`p` of steps-to-:math:`p`, in (0, 1].
         at: evaluation counts for ``gain_<n>`` columns.
+        noise: :math:`\sigma_n` of the steps-to-within criterion (mA/min).
 
     Returns:
         DataFrame with columns ``method, machine_seed, budget, steps_to_<pct>, reached_<pct>,
-        gain_<n>... , best_f_true`` (``<pct>`` = ``round(100 fraction)``).
+        steps_within, gain_<n>... , best_f_true`` (``<pct>`` = ``round(100 fraction)``).
     """
     _check(df)
     if not 0.0 < float(fraction) <= 1.0:
@@ -50,14 +63,16 @@ def run_scores(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.Dat
         n = run["step"].to_numpy() + 1
         f0, f_star = float(run["f0"].iloc[0]), float(run["f_star"].iloc[0])
         target = f0 + float(fraction) * (f_star - f0)
-        hit = np.flatnonzero(run["f_true"].to_numpy() >= target)
+        f = run["f_true"].to_numpy()
         budget = int(n.max())
+        within = f_star - max(0.05 * (f_star - f0), float(noise))
         row = {
             "method": method,
             "machine_seed": seed,
             "budget": budget,
-            f"steps_to_{pct}": float(n[hit[0]]) if hit.size else float(budget + 1),
-            f"reached_{pct}": bool(hit.size),
+            f"steps_to_{pct}": _first(n, f >= target, budget),
+            f"reached_{pct}": bool((f >= target).any()),
+            "steps_within": _first(n, f >= within, budget),
         }
         gain = run["gain_fraction"].to_numpy()
         for k in at:
@@ -68,19 +83,23 @@ def run_scores(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.Dat
     return pd.DataFrame(rows)
 
 
-def summarize(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.DataFrame:
+def summarize(
+    df: pd.DataFrame, fraction: float = 0.95, at=(20, 40, 100), noise: float = 0.04
+) -> pd.DataFrame:
     r"""Per method: median and interquartile range over runs of every score.
 
-    For each score ``s`` of :func:`run_scores` (``steps_to_95``, ``gain_40``, ``gain_100``,
-    ``best_f_true``) the columns ``s_median``, ``s_q25``, ``s_q75`` (linear-interpolated
-    quantiles, NaNs skipped); plus ``n_runs``, ``n_reached_95`` and ``budget`` (max over runs).
+    For each score ``s`` of :func:`run_scores` (``steps_to_95``, ``steps_within``, ``gain_20``,
+    ``gain_40``, ``gain_100``, ``best_f_true``) the columns ``s_median``, ``s_q25``, ``s_q75``
+    (linear-interpolated quantiles, NaNs skipped); plus ``n_runs``, ``n_reached_95``, ``budget``
+    (max over runs) and, when the table has ``ask_time_s``, ``ask_time_s_median`` and
+    ``ask_time_s_p90`` over every ask after the start point.
 
     Returns:
         DataFrame indexed by method (in order of first appearance).
     """
-    scores = run_scores(df, fraction=fraction, at=at)
+    scores = run_scores(df, fraction=fraction, at=at, noise=noise)
     pct = round(100 * float(fraction))
-    cols = [f"steps_to_{pct}"] + [f"gain_{int(k)}" for k in at] + ["best_f_true"]
+    cols = [f"steps_to_{pct}", "steps_within"] + [f"gain_{int(k)}" for k in at] + ["best_f_true"]
     out = []
     for method, g in scores.groupby("method", sort=False):
         row = {
@@ -97,5 +116,9 @@ def summarize(df: pd.DataFrame, fraction: float = 0.95, at=(40, 100)) -> pd.Data
                 float(q.iloc[0]),
                 float(q.iloc[2]),
             )
+        if "ask_time_s" in df.columns:
+            t = df.loc[(df["method"] == method) & (df["step"] > 0), "ask_time_s"].dropna()
+            row["ask_time_s_median"] = float(t.median()) if len(t) else float("nan")
+            row["ask_time_s_p90"] = float(t.quantile(0.9)) if len(t) else float("nan")
         out.append(row)
     return pd.DataFrame(out).set_index("method")

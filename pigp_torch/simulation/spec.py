@@ -70,15 +70,16 @@ class RingSpec:
 
         Args:
             error_seed: the coupling-error seed.
-            **kw: passed on (``target_ratio``, ``error_scale``).
+            **kw: passed on (``target_ratio``, ``error_scale``, ``loss_rate_map`` to override
+                this spec's).
         """
+        kw.setdefault("loss_rate_map", self.loss_rate_map)
         if self.is_spear3:
             sim = Spear3Coupling(
                 int(error_seed),
                 knobs=self.knobs,
                 optics=self.optics,
                 knob_limit=float(self.knob_limit),
-                loss_rate_map=self.loss_rate_map,
                 **kw,
             )
         else:
@@ -89,7 +90,6 @@ class RingSpec:
                 knob_limit=float(self.knob_limit),
                 knob_units=self.knob_units,
                 error_seed=int(error_seed),
-                loss_rate_map=self.loss_rate_map,
                 **kw,
             )
         sim.spec = self

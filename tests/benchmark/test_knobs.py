@@ -29,13 +29,16 @@ def test_three_knob_benchmark_uses_those_knobs(prior3):
         optimum_starts=2,
     )
     assert list(df.columns[3:6]) == THREE and "01G-QSS1" not in df.columns
-    sim = Spear3Coupling(1, knobs=THREE)
+    from pigp_torch.benchmark.protocol import machine_loss_map
+
+    model = Spear3Coupling(1, knobs=THREE)
+    sim = Spear3Coupling(1, knobs=THREE, loss_rate_map=machine_loss_map(1, model.loss_rate_map))
     X = torch.tensor(df[THREE].to_numpy(), dtype=torch.float64)
     assert df["f_true"].to_numpy() == pytest.approx(sim.loss_rate(X).detach().numpy(), rel=1e-12)
-    f_star3 = machine_optimum(1, 2, knobs=THREE)
+    f_star3 = machine_optimum(1, 2, knobs=THREE, machine_maps=True)
     assert df["f_star"].unique().tolist() == [f_star3]
     assert f_star3 == pytest.approx(sim.optimum(n_starts=2)[1], rel=1e-12)
-    assert machine_optimum(1, 2, knobs=THREE[:2]) < f_star3  # cached per knob set
+    assert machine_optimum(1, 2, knobs=THREE[:2], machine_maps=True) < f_star3  # per knob set
     assert f_star3 >= df["f_true"].max()
 
 

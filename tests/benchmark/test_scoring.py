@@ -78,3 +78,24 @@ def test_other_fraction_and_bad_inputs(table):
         run_scores(table, fraction=1.5)
     with pytest.raises(ValueError, match="lacks columns"):
         summarize(table.drop(columns="f_star"))
+
+
+def test_steps_within_uses_the_larger_of_five_percent_and_the_noise(table):
+    """Steps-to-within: f >= f* - max(0.05 (f* - f0), sigma_n); with sigma_n = 0.2 the bar
+    drops from 1.45 to 1.3, so run 'a' 1 counts at evaluation 4 and, with 0.6, at 3."""
+    s = run_scores(table, at=(), noise=0.04).set_index(["method", "machine_seed"])
+    assert s.loc[("a", 1), "steps_within"] == 4.0  # bar 1.45
+    assert s.loc[("a", 2), "steps_within"] == 6.0  # never
+    s = run_scores(table, at=(), noise=0.3).set_index(["method", "machine_seed"])
+    assert s.loc[("a", 1), "steps_within"] == 3.0  # bar 1.2
+    assert s.loc[("a", 2), "steps_within"] == 6.0  # 1.0 < 1.2
+
+
+def test_summary_reports_the_compute_per_ask(table):
+    """Median and 90th percentile of ask_time_s per method, the start point left out."""
+    t = table.copy()
+    t["ask_time_s"] = np.where(t["step"] == 0, 100.0, t["step"] * 0.1)
+    out = summarize(t, at=())
+    assert out.loc["b", "ask_time_s_median"] == pytest.approx(0.15)
+    assert out.loc["a", "ask_time_s_median"] == pytest.approx(0.25)
+    assert out.loc["a", "ask_time_s_p90"] == pytest.approx(0.4)
