@@ -262,6 +262,8 @@ def cmd_compare(args) -> int:
         ring=ring,
         scheduler=args.scheduler,
         center_ensemble=args.center_ensemble,
+        machine_maps=not args.model_maps,
+        prior_source=args.prior_source,
     )
     n_knobs = ring.build(args.model_seed).dim  # cached: the model ring was built already
     name = "spear3" if ring.is_spear3 else Path(ring.lattice).stem
@@ -456,10 +458,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--methods",
         nargs="+",
-        default=["pigp", "pigp-zero-mean", "ml2", "nelder-mead", "rcds"],
-        help="method names (default: pigp pigp-zero-mean ml2 nelder-mead rcds)",
+        default=[
+            "pigp-physics",
+            "pigp",
+            "pigp-zero-mean",
+            "ml2",
+            "xopt-ucb",
+            "xopt-ucb-travel",
+            "nelder-mead",
+            "rcds",
+        ],
+        help="method names (default: pigp-physics pigp pigp-zero-mean ml2 xopt-ucb "
+        "xopt-ucb-travel nelder-mead rcds; the xopt ones need Xopt installed)",
     )
-    p.add_argument("--seeds", default="1-12", help="machine error seeds, e.g. 1-12 or 1,3,5")
+    p.add_argument("--seeds", default="1-24", help="machine error seeds, e.g. 1-24 or 1,3,5")
+    p.add_argument(
+        "--prior-source",
+        default="surrogate",
+        choices=["surrogate", "exact"],
+        help="surrogate (default: the paper's chain, simulated data of the model ring -> "
+        "3-network surrogate -> autograd Hessian; minutes) or exact (the model ring's own "
+        "differentiable loss rate)",
+    )
+    p.add_argument(
+        "--model-maps",
+        action="store_true",
+        help="give every machine the model's loss-rate constants (default: each machine its "
+        "own background and Touschek scale, drawn from its seed)",
+    )
     p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
     p.add_argument("--budget-gp", type=int, default=100, help="evaluations for GP methods")
     p.add_argument("--budget-direct", type=int, default=300, help="for Nelder-Mead and RCDS")

@@ -56,7 +56,7 @@ def test_compare_writes_tables_and_figures(tmp_path, capsys):
     """`pigp compare` on one machine with tiny budgets writes runs, summary and the figures."""
     out = tmp_path / "cmp"
     argv = ["compare", "--methods", "pigp", "pigp-zero-mean", "nelder-mead", "--seeds", "1"]
-    argv += ["--budget-gp", "4", "--budget-direct", "5", "-o", str(out)]
+    argv += ["--budget-gp", "4", "--budget-direct", "5", "--prior-source", "exact", "-o", str(out)]
     assert main(argv) == 0
     import pandas as pd
 
