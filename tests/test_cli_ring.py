@@ -27,7 +27,8 @@ def test_design_deck_file_through_the_cli(tmp_path):
     assert json.loads(prior.read_text())["provenance"]["center_ensemble_seeds"] == [1001, 1004, 4]
     out = tmp_path / "cmp"
     argv = ["compare", *ring, "--methods", "pigp", "nelder-mead", "--seeds", "1", "--budget-gp",
-            "6", "--budget-direct", "6", "--center-ensemble", "0", "--prior-source", "exact", "-o", str(out)]  # fmt: skip
+            "6", "--budget-direct", "6", "--center-ensemble", "0", "--prior-source", "exact",
+            "-o", str(out)]  # fmt: skip
     assert main(argv) == 0
     import pandas as pd
 
