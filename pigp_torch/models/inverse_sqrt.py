@@ -226,10 +226,10 @@ class InverseSqrtPeakModel:
         theta = self._fitted() if theta is None else theta
         return self.background(theta) + torch.rsqrt(self.g(X, theta))
 
-    def jacobian(self, X: Tensor) -> Tensor:
-        r"""``n x n_params`` analytic :math:`\partial f/\partial\theta` at the fitted
-        :math:`\theta`."""
-        theta = self._fitted()
+    def jacobian(self, X: Tensor, theta: Tensor | None = None) -> Tensor:
+        r"""``n x n_params`` analytic :math:`\partial f/\partial\theta` at ``theta`` (default:
+        the fitted :math:`\theta`)."""
+        theta = self._fitted() if theta is None else theta
         d = self.dim
         D = X - theta[:d]
         BD = D @ self.shape(theta)
@@ -338,6 +338,34 @@ class InverseSqrtPeakModel:
             pen = pen + (theta[self._s_index :] ** 2).sum() / self.shape_std**2
         return 0.5 * (r**2).sum() + 0.5 * pen
 
+    def _neg_log_post_and_grad(self, theta: Tensor, X: Tensor, Y: Tensor):
+        r""":meth:`_neg_log_post` and its gradient in closed form (no autograd):
+        :math:`\nabla = -J^\top r / \sigma_n + \tfrac12 \nabla\text{pen}` with :math:`J`
+        the analytic :meth:`jacobian` and :math:`r = (Y - f)/\sigma_n`."""
+        d = self.dim
+        r = (Y - self.form(X, theta)) / self.noise
+        grad = -(self.jacobian(X, theta).T @ r) / self.noise
+        dmu = theta[:d] - self.center0
+        if self.center_cov is None:
+            w = dmu / self.tau**2
+        else:
+            w = self.center_precision @ dmu
+        pen = dmu @ w
+        grad[:d] += w
+        z = (theta[d] - self.log_c_model) / self.log_c_std
+        pen = pen + z**2
+        grad[d] += z / self.log_c_std
+        pen = pen + (theta[d + 1] / self.log_beta_std) ** 2
+        grad[d + 1] += theta[d + 1] / self.log_beta_std**2
+        if self.f_inf_std > 0:
+            pen = pen + (theta[d + 2] / self.f_inf_std) ** 2
+            grad[d + 2] += theta[d + 2] / self.f_inf_std**2
+        if self.shape_std > 0:
+            s = theta[self._s_index :]
+            pen = pen + (s**2).sum() / self.shape_std**2
+            grad[self._s_index :] += s / self.shape_std**2
+        return 0.5 * (r**2).sum() + 0.5 * pen, grad
+
     def _linear_start(self, X: Tensor, Y: Tensor) -> Tensor | None:
         r"""Weighted least squares of :math:`g_i - \mathbf x_i^\top B\mathbf x_i = a +
         \mathbf w^\top\mathbf x_i` (:math:`\beta=1`); weights from the delta method,
@@ -389,10 +417,9 @@ class InverseSqrtPeakModel:
         scale_np = scale.numpy()
 
         def value_and_grad(z: np.ndarray) -> tuple[float, np.ndarray]:
-            t = (torch.from_numpy(z) * scale).requires_grad_(True)
-            v = self._neg_log_post(t, X, Y)
-            (grad,) = torch.autograd.grad(v, t)
-            if not torch.isfinite(v):
+            with torch.no_grad():
+                v, grad = self._neg_log_post_and_grad(torch.from_numpy(z) * scale, X, Y)
+            if not (torch.isfinite(v) and torch.isfinite(grad).all()):
                 return 1e30, np.zeros_like(z)
             return float(v.detach()), (grad * scale).numpy()
 

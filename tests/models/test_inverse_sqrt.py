@@ -462,3 +462,29 @@ def test_ensemble_centre_prior_finds_machines_of_the_ensemble_sooner(prior):
             bo = PhysicsModelBO(prior.bounds, with_cov, center_prior=name, seed=s, n_starts=4)
             total[name] += _steps_to_95(bo, f, prior.noise, s, budget=30)
     assert total["ensemble"] <= 0.85 * total["box"], total
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"f_inf_std": 0.05}, {"shape_std": 0.5}, {"f_inf_std": 0.05, "shape_std": 0.5}],
+)
+@pytest.mark.parametrize("ensemble", [False, True])
+def test_closed_form_gradient_of_the_posterior_equals_autograd(prior, options, ensemble):
+    """The fit's closed-form value and gradient of the negative log posterior equal autograd's
+    (1e-10) for every parameter layout and both centre priors."""
+    if ensemble:
+        g = torch.Generator().manual_seed(3)
+        A = torch.randn(D, D, generator=g, dtype=DT) * 0.004
+        options = {**options, "center_cov": A @ A.T + 1e-6 * torch.eye(D, dtype=DT)}
+    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
+    assert (model.center_cov is not None) == ensemble
+    g = torch.Generator().manual_seed(4)
+    X = (torch.rand(25, D, generator=g, dtype=DT) * 2 - 1) * 0.015
+    Y = F_INF + 0.3 + 0.1 * torch.rand(25, generator=g, dtype=DT)
+    theta = model.prior_theta() + 0.1 * torch.randn(model.n_params, generator=g, dtype=DT)
+    t = theta.clone().requires_grad_(True)
+    v_ref = model._neg_log_post(t, X, Y)
+    (g_ref,) = torch.autograd.grad(v_ref, t)
+    v, grad = model._neg_log_post_and_grad(theta, X, Y)
+    torch.testing.assert_close(v, v_ref.detach(), rtol=1e-12, atol=0)
+    torch.testing.assert_close(grad, g_ref, rtol=1e-10, atol=1e-10 * float(g_ref.abs().max()))
