@@ -323,10 +323,14 @@ def cmd_demo(args) -> int:
           f"{args.budget} evaluations each", flush=True)  # fmt: skip
     import pandas as pd
 
+    from pigp_torch.progress import reporting_spec
+
+    names, unit = model_ring.knob_names, model_ring.knob_units
     runs = [
-        run_one(METHODS[name], args.machine_seed, prior, budget=args.budget)
-        for name in args.methods
-    ]
+        run_one(reporting_spec(METHODS[m], args.budget, names, unit=unit), args.machine_seed,
+                prior, budget=args.budget)
+        for m in args.methods
+    ]  # fmt: skip
     df = pd.concat(runs, ignore_index=True)
     out.mkdir(parents=True, exist_ok=True)
     prior.save(out / "prior.json")
