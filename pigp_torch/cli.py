@@ -382,7 +382,7 @@ def cmd_bench_simulator(args) -> int:
 
 # ----------------------------------------------------------------------------- parser
 #: Modules of ``pigp_torch.commands`` that register further sub-commands.
-COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim", "bench_bo")
+COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim", "bench_bo", "report")
 
 
 def build_parser() -> argparse.ArgumentParser:
