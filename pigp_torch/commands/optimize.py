@@ -80,6 +80,19 @@ def register(sub, bench) -> None:
         help="validate, connect and print the plan; move nothing, write nothing",
     )
     p.add_argument("--quiet", action="store_true", help="no line per evaluation")
+    p.add_argument(
+        "--dashboard",
+        action="store_true",
+        help="serve a live page of the run on 127.0.0.1 (step, readings, best so far, knob "
+        "moves; read from the run log) while it runs; the URL is printed",
+    )
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=0,
+        metavar="PORT",
+        help="port of the dashboard (default 0: a free one)",
+    )
     p.set_defaults(func=cmd_optimize)
 
 
@@ -347,6 +360,12 @@ def _run(args, setup, records, log_lock) -> int:
     if records is not None and records.evaluations:
         _say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
         report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
+    dashboard = None
+    if getattr(args, "dashboard", False):
+        from pigp_torch.dashboard import Dashboard
+
+        dashboard = Dashboard(log.path, port=args.dashboard_port)
+        _say(out, f"dashboard: {dashboard.url} (while the run goes)")
     code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
@@ -362,6 +381,8 @@ def _run(args, setup, records, log_lock) -> int:
         _say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()
+        if dashboard is not None:
+            dashboard.close()
         end = _print_summary(log.path, out)
         with contextlib.suppress(OSError, ValueError):
             out.flush()
