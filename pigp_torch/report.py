@@ -104,7 +104,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         machine = build_machine(config)
         sigma = float(config.machine.noise)
         true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
-        unit = str(getattr(machine.sim, "knob_units", "") or "")
+        unit = str(getattr(getattr(machine, "sim", None), "knob_units", "") or "A")
     elif config is not None and config.prior is not None and sigma is None:
         from pigp_torch.prior import PhysicsPrior
 
