@@ -273,6 +273,12 @@ def cmd_compare(args) -> int:
 
 
 # ----------------------------------------------------------------------------- demo
+def _print_reports(reports) -> None:
+    for r in reports:
+        print(f"      held-out rel. RMSE {100 * r['val_rel_rmse']:.2f} %, "
+              f"near optimum {100 * r['near_opt_rel_rmse']:.2f} %")  # fmt: skip
+
+
 def cmd_demo(args) -> int:
     from pigp_torch.benchmark import METHODS, run_one
     from pigp_torch.prior import prior_from_model
@@ -296,39 +302,64 @@ def cmd_demo(args) -> int:
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    from pigp_torch.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
+
     out = args.out
-    print(f"[1/4] simulated data of the model ring (error seed {args.model_seed})", flush=True)
+    cache = None if args.no_cache else DemoCache(args.cache_dir or default_cache_dir())
+    key = {"model_seed": args.model_seed, "n": args.n, "members": args.members,
+           "target": args.target, "noise": 0.04, "sample_seed": 0}  # fmt: skip
     model_ring = Spear3Coupling(args.model_seed)
-    data = generate_dataset(model_ring, args.n, seed=0, progress=True)
-    print(f"[2/4] surrogate: {args.members} network(s) on {len(data)} samples", flush=True)
-    surrogate, reports = train_ensemble(
-        data, n_members=args.members, target=args.target, progress=True
-    )
-    for r in reports:
-        print(f"      held-out rel. RMSE {100 * r['val_rel_rmse']:.2f} %, "
-              f"near optimum {100 * r['near_opt_rel_rmse']:.2f} %")  # fmt: skip
-    print("[3/4] physics prior: optimum and Hessian of the surrogate", flush=True)
-    prior = prior_from_model(
-        surrogate,
-        model_ring.bounds,
-        f_inf=model_ring.loss_background,
-        noise=0.04,
-        knob_names=model_ring.knob_names,
-        provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed})"},
-    )
+    hit = None if cache is None else cache.load_prior(key)
+    if hit is not None:
+        prior, reports = hit
+        print(f"[1-3/4] physics prior of the surrogate from the cache ({cache.path('prior', key)}"
+              "; --no-cache recomputes it)", flush=True)  # fmt: skip
+        _print_reports(reports)
+    else:
+        print(f"[1/4] simulated data of the model ring (error seed {args.model_seed})", flush=True)
+        data = generate_dataset(model_ring, args.n, seed=0, progress=True)
+        print(f"[2/4] surrogate: {args.members} network(s) on {len(data)} samples", flush=True)
+        surrogate, reports = train_ensemble(
+            data, n_members=args.members, target=args.target, progress=True
+        )
+        _print_reports(reports)
+        print("[3/4] physics prior: optimum and Hessian of the surrogate", flush=True)
+        prior = prior_from_model(
+            surrogate,
+            model_ring.bounds,
+            f_inf=model_ring.loss_background,
+            noise=0.04,
+            knob_names=model_ring.knob_names,
+            provenance={"surrogate_of": f"Spear3Coupling(error_seed={args.model_seed})"},
+        )
+        if cache is not None:
+            cache.save_prior(key, prior, reports)
     print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
           f"{prior.f_x0:.3f} mA/min")  # fmt: skip
     if args.center_ensemble and any(METHODS[m].uses_center_ensemble for m in args.methods):
         meta = {"error_seed": args.model_seed}
-        prior = _with_center_ensemble(prior, args.center_ensemble, meta, args.machine_seed)
+
+        def compute(p):
+            return _with_center_ensemble(p, args.center_ensemble, meta, args.machine_seed)
+
+        prior, source = with_cached_ensemble(
+            prior, args.center_ensemble, args.model_seed, cache, compute
+        )
+        if source is not None:
+            print(f"      optima of {args.center_ensemble} ensemble rings from the cache "
+                  f"({source})", flush=True)  # fmt: skip
     print(f"[4/4] {', '.join(args.methods)} on machine error seed {args.machine_seed}, "
           f"{args.budget} evaluations each", flush=True)  # fmt: skip
     import pandas as pd
 
+    from pigp_torch.progress import reporting_spec
+
+    names, unit = model_ring.knob_names, model_ring.knob_units
     runs = [
-        run_one(METHODS[name], args.machine_seed, prior, budget=args.budget)
-        for name in args.methods
-    ]
+        run_one(reporting_spec(METHODS[m], args.budget, names, unit=unit), args.machine_seed,
+                prior, budget=args.budget)
+        for m in args.methods
+    ]  # fmt: skip
     df = pd.concat(runs, ignore_index=True)
     out.mkdir(parents=True, exist_ok=True)
     prior.save(out / "prior.json")
@@ -380,7 +411,7 @@ def cmd_bench_simulator(args) -> int:
 
 # ----------------------------------------------------------------------------- parser
 #: Modules of ``pigp_torch.commands`` that register further sub-commands.
-COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim", "bench_bo")
+COMMAND_MODULES: tuple[str, ...] = ("optimize", "serve_sim", "bench_bo", "report")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -523,7 +554,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the main job end to end on the embedded simulated ring",
         description="Simulated data of a model ring -> surrogate -> physics prior -> the physics "
         "form fitted online (pigp-physics), the paper's PI-GP and ML-II on another simulated "
-        "machine -> table and figure (a few minutes on 2 cores).",
+        "machine -> table and figure (a few minutes on 2 cores). The surrogate's prior and the "
+        "ensemble optima are cached between runs (--cache-dir, --no-cache).",
     )
     p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
     p.add_argument("--machine-seed", type=int, default=1, help="error seed of the machine")
@@ -548,6 +580,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="simulated rings whose optima give pigp-physics its prior on where the machine's "
         "optimum lies and the mean shape of the peak (~3-7 s a ring; 0: none; default 20)",
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="where the surrogate's prior and the ensemble optima are kept between runs "
+        "(default $PIGP_CACHE_DIR, else ~/.cache/pigp; keyed by the arguments and the code)",
+    )
+    p.add_argument(
+        "--no-cache", action="store_true", help="recompute everything; read and write no cache"
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/demo"), help="output folder")
     p.set_defaults(func=cmd_demo)

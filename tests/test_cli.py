@@ -114,3 +114,61 @@ def test_demo_with_center_ensemble(tmp_path):
     assert p.provenance["center_ensemble_seeds"] == [1001, 1014, 14]
     assert torch.linalg.eigvalsh(p.center_cov).min() > 0
     assert p.peak_shape.shape == (13, 13) and torch.linalg.eigvalsh(p.peak_shape).min() > 0
+
+
+def test_demo_cache_gives_the_same_prior_and_runs(tmp_path, capsys):
+    """A second `pigp demo` reads the surrogate's prior from the cache and gives the same prior
+    file and the same runs; --no-cache reads and writes nothing."""
+    argv = ["demo", "--n", "2000", "--members", "1", "--budget", "3", "--target", "log_excess"]
+    argv += ["--methods", "pigp-physics", "--center-ensemble", "0"]
+    cache = ["--cache-dir", str(tmp_path / "cache")]
+    assert main([*argv, *cache, "-o", str(tmp_path / "a")]) == 0
+    first = capsys.readouterr().out
+    assert "[1/4]" in first and "from the cache" not in first
+    assert "pigp-physics  evaluation    3/3" in first  # a progress line per evaluation
+    assert len(list((tmp_path / "cache").glob("prior-*.json"))) == 1
+    assert main([*argv, *cache, "-o", str(tmp_path / "b")]) == 0
+    second = capsys.readouterr().out
+    assert "[1/4]" not in second and "from the cache" in second
+    assert (tmp_path / "a/prior.json").read_bytes() == (tmp_path / "b/prior.json").read_bytes()
+    import pandas as pd
+
+    a, b = (pd.read_csv(tmp_path / x / "runs.csv") for x in "ab")
+    numbers = [c for c in a.columns if not c.endswith("_time_s")]  # timings differ, not numbers
+    pd.testing.assert_frame_equal(a[numbers], b[numbers], check_exact=True)
+    assert main([*argv, *cache, "--no-cache", "-o", str(tmp_path / "c")]) == 0
+    assert "[1/4]" in capsys.readouterr().out
+    assert (tmp_path / "a" / "prior.json").read_bytes() == (
+        tmp_path / "c" / "prior.json"
+    ).read_bytes()
+    assert len(list((tmp_path / "cache").glob("*.json"))) == 1
+
+
+def test_the_ensemble_cache_stores_what_it_was_given(tmp_path):
+    """with_cached_ensemble: computed once, then read back bit for bit (keyed by seed, size)."""
+    import dataclasses
+
+    from pigp_torch.demo_cache import DemoCache, with_cached_ensemble
+
+    d = 3
+    prior = PhysicsPrior(
+        x0=torch.zeros(d, dtype=torch.float64), f_x0=1.0, f_inf=0.2,
+        precision=torch.eye(d, dtype=torch.float64), amplitude=0.1, noise=0.04,
+        knob_names=["a", "b", "c"], bounds=torch.tensor([[-1.0] * d, [1.0] * d]),
+    )  # fmt: skip
+    cov = torch.tensor([[2.0, 0.1, 0.0], [0.1, 1.0 / 3, 0.0], [0.0, 0.0, 0.7]])
+    calls = []
+
+    def compute(p):
+        calls.append(1)
+        prov = {**p.provenance, "center_ensemble_seeds": [1001, 1020, 20]}
+        return dataclasses.replace(p, center_cov=cov, peak_shape=2 * cov, provenance=prov)
+
+    cache = DemoCache(tmp_path)
+    a, source_a = with_cached_ensemble(prior, 20, 0, cache, compute)
+    b, source_b = with_cached_ensemble(prior, 20, 0, cache, compute)
+    assert calls == [1] and source_a is None and source_b.is_file()
+    assert torch.equal(a.center_cov, b.center_cov) and torch.equal(a.peak_shape, b.peak_shape)
+    assert b.provenance["center_ensemble_seeds"] == [1001, 1020, 20]
+    with_cached_ensemble(prior, 21, 0, cache, compute)  # another size: computed again
+    assert calls == [1, 1]

@@ -5,9 +5,11 @@ run's locks (the run log's, and on EPICS one per PV prefix: :mod:`pigp_torch.run
 the optimizer and then the machine, writes the run log's header (configuration and its sha256,
 prior provenance) and runs :func:`pigp_torch.optimize` with ramped moves, intent records, read
 retries, checked readings, the objective floor and the restore of the initial knobs (or the best
-point with ``restore: best``). One line per evaluation goes to stdout (counted from 1), then a
-summary: status, best reading and where, and where the knobs were put back — or, if they could
-not be, the last setpoint written.
+point with ``restore: best``). One line per evaluation goes to stdout (step N of M counted from
+1, the reading, the best so far, the largest knob move from the previous evaluation and the
+seconds the step took: :class:`pigp_torch.progress.ProgressLine`), then a summary: status, best
+reading and where, and where the knobs were put back — or, if they could not be, the last
+setpoint written.
 
 ``--resume LOG`` continues a logged run: the optimizer is rebuilt from the logged evaluations
 (:func:`pigp_torch.runlog.replay`), the knobs are compared with the initial knobs of the run's
@@ -78,6 +80,19 @@ def register(sub, bench) -> None:
         help="validate, connect and print the plan; move nothing, write nothing",
     )
     p.add_argument("--quiet", action="store_true", help="no line per evaluation")
+    p.add_argument(
+        "--dashboard",
+        action="store_true",
+        help="serve a live page of the run on 127.0.0.1 (step, readings, best so far, knob "
+        "moves; read from the run log) while it runs; the URL is printed",
+    )
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=0,
+        metavar="PORT",
+        help="port of the dashboard (default 0: a free one)",
+    )
     p.set_defaults(func=cmd_optimize)
 
 
@@ -335,22 +350,22 @@ def _run(args, setup, records, log_lock) -> int:
         _print_resume_state(setup, records, out)
     with contextlib.suppress(OSError, ValueError):
         out.flush()
-    budget = config.budget
-    maximize = config.objective.maximize
-    state = {"best": None}
+    from pigp_torch.progress import ProgressLine
 
-    def report(row: dict) -> None:
-        y = row["y"]
-        b = state["best"]
-        if b is None or (y > b if maximize else y < b):
-            state["best"] = y
-        _say(out, f"evaluation {row['step'] + 1:>4}/{budget}  y = {y:.6g}  best = "
-                  f"{state['best']:.6g}")  # fmt: skip
-
+    sim = getattr(setup.machine, "sim", None)  # the simulated ring knows its knob unit
+    unit = str(getattr(sim, "knob_units", "") or "")
+    report = ProgressLine(
+        config.budget, config.knob_names, maximize=config.objective.maximize, unit=unit, out=out
+    )
     if records is not None and records.evaluations:
         _say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
-        ys = [r["y"] for r in records.evaluations]
-        state["best"] = max(ys) if maximize else min(ys)
+        report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
+    dashboard = None
+    if getattr(args, "dashboard", False):
+        from pigp_torch.dashboard import Dashboard
+
+        dashboard = Dashboard(log.path, port=args.dashboard_port)
+        _say(out, f"dashboard: {dashboard.url} (while the run goes)")
     code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
@@ -366,6 +381,8 @@ def _run(args, setup, records, log_lock) -> int:
         _say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()
+        if dashboard is not None:
+            dashboard.close()
         end = _print_summary(log.path, out)
         with contextlib.suppress(OSError, ValueError):
             out.flush()

@@ -62,6 +62,11 @@ class PhysicsModelBO(AskTellOptimizer):
         success_tol: improvement of the best posterior mean that counts as a success
             (default: a quarter of the model's noise).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
+        travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
+            one value or ``d``), or ``None`` (default: none). The search box is the trust box
+            intersected with the box of this half-width around the last told point; where the
+            two do not overlap (the best point lies far from the last one) the travel box alone
+            is used, so a proposal never moves a knob farther than the limit.
         center_prior: prior on the fitted centre (where the machine's optimum lies):
             ``"ensemble"``: from the error ensemble of the model rings,
             :attr:`prior.center_cov <pigp_torch.prior.PhysicsPrior>`; ``"box"``: isotropic,
@@ -99,6 +104,7 @@ class PhysicsModelBO(AskTellOptimizer):
         seed: int = 0,
         center_prior: str = "auto",
         shape_prior: str = "auto",
+        travel_limit=None,
         maximize: bool = True,
         **model_options,
     ) -> None:
@@ -143,12 +149,30 @@ class PhysicsModelBO(AskTellOptimizer):
         self._streak = 0  # > 0: successes in a row, < 0: failures in a row
         self._best_mean: float | None = None
         self.seed = int(seed)
+        self.travel_limit = _travel_limit(travel_limit, self.dim)
         self.last_info: dict = {}
 
     def trust_box(self, center: torch.Tensor) -> torch.Tensor:
         """The ``2 x d`` search box of the current half-width around ``center`` (same rule as
         :class:`BayesOpt`)."""
         return trust_box(self.bounds, center, self.box_half_width)
+
+    def search_box(self, center: torch.Tensor) -> torch.Tensor:
+        """The ``2 x d`` box the acquisition is maximized in: :meth:`trust_box` of ``center``,
+        within ``travel_limit`` of the last told point when a travel limit is set."""
+        box = self.trust_box(center)
+        if self.travel_limit is None:
+            return box
+        half = self.travel_limit * (self.bounds[1] - self.bounds[0]) / 2
+        travel = torch.stack(
+            [torch.maximum(self.bounds[0], self.X[-1] - half),
+             torch.minimum(self.bounds[1], self.X[-1] + half)]
+        )  # fmt: skip
+        lower, upper = torch.maximum(box[0], travel[0]), torch.minimum(box[1], travel[1])
+        apart = lower > upper
+        return torch.stack(
+            [torch.where(apart, travel[0], lower), torch.where(apart, travel[1], upper)]
+        )
 
     def _adapt(self, best_mean: float) -> None:
         """One TuRBO-like update of :attr:`box_half_width` from the best posterior mean."""
@@ -201,7 +225,7 @@ class PhysicsModelBO(AskTellOptimizer):
         center = X[int(mean.argmax())]
         if self.adapt_box:
             self._adapt(float(mean.max()))
-        box = self.trust_box(center)
+        box = self.search_box(center)
         fitted = self.model.center()
         t1 = time.perf_counter()
         exploit = self.exploit_every > 0 and self.n_told % self.exploit_every == 0
@@ -230,6 +254,18 @@ class PhysicsModelBO(AskTellOptimizer):
             "acq_time_s": time.perf_counter() - t1,
         }
         return x
+
+
+def _travel_limit(value, d: int) -> torch.Tensor | None:
+    """``None`` or a ``d`` tensor of positive finite fractions of the half-range."""
+    if value is None:
+        return None
+    t = torch.as_tensor(value, dtype=DTYPE).reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(d).clone()
+    if t.numel() != d or not bool(torch.isfinite(t).all() and (t > 0).all()):
+        raise ValueError(f"travel_limit must be positive and finite, one value or {d}: {value}")
+    return t
 
 
 def _choose(choice: str, what: str, own: str, ensemble_value, option: str, options: dict) -> str:

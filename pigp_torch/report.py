@@ -1,0 +1,331 @@
+r"""Figures for the logbook: one online run from its run log, or a ``pigp compare`` folder.
+
+:func:`run_report` reads a JSON-lines run log (:mod:`pigp_torch.runlog`) and draws, against the
+evaluation number:
+
+* the readings with the noise band (:math:`\pm\sigma_n`: the simulated machine's noise, else the
+  prior's, else the ``noise`` argument; no band when none is known), the best reading so far and,
+  for a run on the simulated ring, the noise-free value at every setting and its best so far;
+* the knob trajectories in knob units with their limits (the run's bounds), and for
+  ``pigp-physics`` the fitted centre of the physics form at the end of the run with
+  :math:`\pm 2\sigma` (Laplace) per knob;
+* the fitted optimum (``pigp-physics``: the form refitted to all readings, its predicted value
+  :math:`\pm 2\sigma` at the best setting inside the box);
+* the run's notices: sessions (resumes), discarded readings, knobs reaching a limit, the end
+  status and reason, a fitted centre outside the box.
+
+:func:`compare_report` draws a ``pigp compare`` / ``pigp demo`` folder (``runs.csv``): the gain
+fraction (median and interquartile range over machines) and the best noise-free value per method.
+
+:func:`write_report` writes the figure as PNG and a self-contained HTML page (the PNG embedded as
+base64, the notices and a summary as text; no external resources).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from pathlib import Path
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.runlog import read_log
+
+
+def _load_run_config(records):
+    """The logged configuration (``None`` when the header has none or it no longer loads)."""
+    from pigp_torch.config import logged_config
+
+    try:
+        return logged_config(records)
+    except Exception:  # an older log, an edited header, a prior file moved: draw without it
+        return None
+
+
+def _fitted_optimum(config, X: torch.Tensor, Y: torch.Tensor) -> dict | None:
+    """``pigp-physics``: refit the form to all readings; centre, its std, value at the optimum."""
+    from pigp_torch.config import build_optimizer
+
+    if config is None or config.method.name != "pigp-physics" or len(Y) < 2:
+        return None
+    opt = build_optimizer(config)
+    model = opt.model
+    model.fit(X, Y)
+    x_hat, active = model.box_optimum()
+    with torch.no_grad():
+        mu, sd = model.predict(x_hat.reshape(1, -1))
+    d = model.dim
+    return {
+        "center": model.center(),
+        "center_std": model.cov[:d, :d].diagonal().clamp_min(0).sqrt(),
+        "x_hat": x_hat,
+        "active": active,
+        "value": float(mu[0]),
+        "value_std": float(sd[0]),
+    }
+
+
+def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True) -> dict:
+    r"""What the figure of one run shows, from its run log.
+
+    Args:
+        path: the run log.
+        noise: :math:`\sigma_n` of the readings when neither the simulated machine nor the prior
+            gives it (objective units).
+        fit: refit ``pigp-physics``'s form to show the fitted optimum (one MAP fit).
+
+    Returns:
+        a dict: ``path``, ``method``, ``knob_names``, ``unit`` (knob unit, simulated runs; else
+        ``""``), ``bounds`` (``2 x d`` or ``None``), ``maximize``, ``X`` (``n x d``), ``Y``
+        (``n``), ``noise`` (or ``None``), ``true`` (noise-free values, simulated runs only, else
+        ``None``), ``fit`` (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings),
+        ``budget``, ``status``.
+
+    Raises:
+        FileNotFoundError: no such log.
+        ValueError: not a run log, or it holds no evaluation.
+    """
+    records = read_log(path)
+    if not records.evaluations:
+        raise ValueError(f"{path}: the run log holds no evaluation yet")
+    h = records.header
+    X, Y = records.X(), records.Y()
+    names = records.knob_names or [f"x{i}" for i in range(X.shape[1])]
+    bounds = torch.tensor(h["bounds"], dtype=DTYPE) if h.get("bounds") else None
+    config = _load_run_config(records)
+    maximize = bool(h.get("maximize", True))
+    true, unit = None, ""
+    sigma = noise
+    if config is not None and config.machine.kind == "sim":
+        from pigp_torch.config import build_machine
+
+        machine = build_machine(config)
+        sigma = float(config.machine.noise)
+        true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
+        unit = str(getattr(getattr(machine, "sim", None), "knob_units", "") or "A")
+    elif config is not None and config.prior is not None and sigma is None:
+        from pigp_torch.prior import PhysicsPrior
+
+        sigma = PhysicsPrior.load(config.prior).noise
+    notices = _notices(records, X, bounds, names)
+    fitted = _fitted_optimum(config, X, Y) if fit else None
+    if fitted is not None and bool(fitted["active"].any()):
+        knobs = [names[i] for i in fitted["active"].nonzero().flatten().tolist()]
+        notices.append(f"fitted centre outside the box: optimum on the limit of {knobs}")
+    end = records.last_end
+    return {
+        "path": Path(path),
+        "method": h.get("method", "?"),
+        "knob_names": names,
+        "unit": unit,
+        "bounds": bounds,
+        "maximize": maximize,
+        "X": X,
+        "Y": Y,
+        "noise": sigma,
+        "true": true,
+        "fit": fitted,
+        "notices": notices,
+        "budget": (records.starts[-1].get("budget") if records.starts else None) or len(Y),
+        "status": "running (no end record)" if end is None else end["status"],
+    }
+
+
+def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
+    """The run's events, in order, as short lines (steps counted from 1)."""
+    out = []
+    for s in records.starts[1:]:
+        out.append(f"resumed at evaluation {int(s.get('first_step', 0)) + 1}")
+    for r in records.discarded:
+        out.append(f"reading discarded at evaluation {int(r['step']) + 1}: {r.get('reason', '')}")
+    if bounds is not None and len(X):
+        span = bounds[1] - bounds[0]
+        at = (X <= bounds[0] + 1e-6 * span) | (X >= bounds[1] - 1e-6 * span)
+        for i in at.any(0).nonzero().flatten().tolist():
+            step = int(at[:, i].nonzero()[0])
+            out.append(f"{names[i]} reached its limit at evaluation {step + 1}")
+    end = records.last_end
+    if end is not None:
+        reason = f": {end['reason']}" if end.get("reason") else ""
+        out.append(f"ended {end['status']}{reason}; knobs restored to {end.get('restored_to')}")
+    return out
+
+
+def _running_best(v: torch.Tensor, maximize: bool) -> torch.Tensor:
+    return torch.cummax(v, 0).values if maximize else torch.cummin(v, 0).values
+
+
+def plot_run(data: dict, path: str | Path) -> Path:
+    """Draw :func:`run_report`'s data into a PNG at ``path``; returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(data["Y"])
+    steps = torch.arange(1, n + 1).numpy()
+    Y, X = data["Y"], data["X"]
+    fig, (ax, axk) = plt.subplots(2, 1, figsize=(10, 8.5), sharex=True, height_ratios=[3, 2])
+    if data["noise"]:
+        s = data["noise"]
+        ax.fill_between(steps, (Y - s).numpy(), (Y + s).numpy(), color="C0", alpha=0.15,
+                        label=f"noise band ±{s:g}")  # fmt: skip
+    ax.plot(steps, Y.numpy(), ".", color="C0", label="reading")
+    ax.plot(steps, _running_best(Y, data["maximize"]).numpy(), color="C0", label="best reading")
+    if data["true"] is not None:
+        t = data["true"]
+        ax.plot(steps, t.numpy(), "x", ms=3, color="C2", label="true value (noise-free)")
+        best_true = _running_best(t, data["maximize"]).numpy()
+        ax.plot(steps, best_true, color="C2", label="best true value")
+    fit = data["fit"]
+    if fit is not None:
+        lo, hi = fit["value"] - 2 * fit["value_std"], fit["value"] + 2 * fit["value_std"]
+        label = f"fitted optimum {fit['value']:.4g} ± {2 * fit['value_std']:.2g} (2σ)"
+        ax.axhspan(lo, hi, color="C3", alpha=0.12, label=label)
+        ax.axhline(fit["value"], color="C3", lw=1)
+    ax.set_ylabel("objective")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(alpha=0.3)
+    title = f"{data['path'].name}: {data['method']}, {n} of {data['budget']} evaluations"
+    ax.set_title(f"{title} ({data['status']})")
+
+    names = data["knob_names"]
+    for i, name in enumerate(names):
+        axk.plot(steps, X[:, i].numpy(), lw=1, color=f"C{i % 10}", label=name)
+    if data["bounds"] is not None:
+        for v in sorted(set(data["bounds"].flatten().tolist())):
+            axk.axhline(v, color="k", ls="--", lw=0.8)
+    if fit is not None:
+        xs = n + 1 + 0.25 * torch.arange(len(names)).numpy() / max(1, len(names))
+        for i in range(len(names)):
+            axk.errorbar(xs[i], float(fit["center"][i]), yerr=2 * float(fit["center_std"][i]),
+                         fmt="o", ms=3, color=f"C{i % 10}", capsize=2)  # fmt: skip
+        axk.annotate("fitted centre ±2σ", (n + 1, axk.get_ylim()[1]), fontsize=8, va="top")
+    axk.set_xlabel("evaluation")
+    axk.set_ylabel(f"knob setting ({data['unit']})" if data.get("unit") else "knob setting")
+    axk.grid(alpha=0.3)
+    axk.legend(ncol=7, fontsize=6, loc="lower left")
+    if data["notices"]:
+        fig.text(0.01, 0.005, "\n".join(data["notices"][:6]), fontsize=7, va="bottom")
+        fig.subplots_adjust(bottom=0.08 + 0.018 * min(6, len(data["notices"])))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def compare_report(folder: str | Path) -> dict:
+    """What the figure of a ``pigp compare`` folder shows (its ``runs.csv``).
+
+    Raises:
+        FileNotFoundError: no ``runs.csv`` in ``folder``.
+    """
+    import pandas as pd
+
+    folder = Path(folder)
+    csv = folder / "runs.csv"
+    if not csv.is_file():
+        raise FileNotFoundError(f"{folder} has no runs.csv (not a pigp compare folder)")
+    df = pd.read_csv(csv)
+    notes = []
+    summary = folder / "summary.csv"
+    if summary.is_file():
+        notes = pd.read_csv(summary).to_string(index=False, float_format="%.3g").splitlines()
+    return {"path": folder, "runs": df, "notices": notes}
+
+
+def plot_compare(data: dict, path: str | Path) -> Path:
+    """Draw :func:`compare_report`'s data into a PNG at ``path``; returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    df = data["runs"]
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
+    has_gain = "gain_fraction" in df and df["gain_fraction"].notna().any()
+    col = "gain_fraction" if has_gain else "y"
+    for k, (method, g) in enumerate(df.groupby("method", sort=False)):
+        q = g.groupby("step")[col].quantile([0.25, 0.5, 0.75]).unstack()
+        x = q.index.to_numpy() + 1
+        ax.plot(x, q[0.5], color=f"C{k}", label=f"{method} ({g['machine_seed'].nunique()} rings)")
+        ax.fill_between(x, q[0.25], q[0.75], color=f"C{k}", alpha=0.2)
+        for _, run in g.groupby("machine_seed"):
+            value = run["best_f_true"] if "best_f_true" in run else run["y"].cummax()
+            ax2.plot(run["step"] + 1, value, color=f"C{k}", lw=0.8, alpha=0.7)
+    ax.set_ylabel("gain fraction (median, IQR)" if has_gain else "reading (median, IQR)")
+    ax2.set_ylabel("best noise-free value so far (each run)")
+    for a in (ax, ax2):
+        a.set_xlabel("evaluation")
+        a.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.suptitle(f"{data['path']}")
+    path = Path(path)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def html_page(title: str, png: Path, lines: list[str]) -> str:
+    """A self-contained HTML page: ``title``, the PNG embedded as base64, ``lines`` as text."""
+    data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
+    items = "\n".join(f"<li>{html.escape(s)}</li>" for s in lines)
+    return (
+        "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+        f"<title>{html.escape(title)}</title></head>\n<body style='font-family:sans-serif'>\n"
+        f"<h1>{html.escape(title)}</h1>\n<img alt='report' style='max-width:100%' "
+        f"src='data:image/png;base64,{data}'>\n<ul style='font-family:monospace'>\n{items}\n"
+        "</ul>\n</body></html>\n"
+    )
+
+
+def write_report(
+    target: str | Path, out: str | Path | None = None, *, noise: float | None = None
+) -> tuple[Path, Path]:
+    r"""Write ``<out>.png`` and ``<out>.html`` for a run log or a ``pigp compare`` folder.
+
+    Args:
+        target: a run log (file) or a folder with ``runs.csv``.
+        out: path without suffix (default: ``<log without .jsonl>_report`` next to the log, or
+            ``<folder>/report``).
+        noise: as in :func:`run_report`.
+
+    Returns:
+        ``(png, html)`` paths.
+
+    Raises:
+        FileNotFoundError, ValueError: as :func:`run_report` / :func:`compare_report`.
+    """
+    target = Path(target)
+    if target.is_dir():
+        data = compare_report(target)
+        base = Path(out) if out is not None else target / "report"
+        png = plot_compare(data, base.with_suffix(".png"))
+        title = f"pigp compare: {target}"
+        lines = data["notices"]
+    else:
+        data = run_report(target, noise=noise)
+        base = Path(out) if out is not None else target.with_name(target.stem + "_report")
+        png = plot_run(data, base.with_suffix(".png"))
+        title = f"pigp run: {target.name} ({data['method']})"
+        lines = [*_summary(data), *data["notices"]]
+    page = base.with_suffix(".html")
+    page.write_text(html_page(title, png, lines), encoding="utf-8")
+    return png, page
+
+
+def _summary(data: dict) -> list[str]:
+    Y = data["Y"]
+    i = int(Y.argmax() if data["maximize"] else Y.argmin())
+    lines = [f"best reading {float(Y[i]):.6g} at evaluation {i + 1} of {len(Y)}"]
+    if data["true"] is not None:
+        t = data["true"]
+        j = int(t.argmax() if data["maximize"] else t.argmin())
+        lines.append(f"best true value {float(t[j]):.6g} at evaluation {j + 1}")
+    fit = data["fit"]
+    if fit is not None and math.isfinite(fit["value"]):
+        lines.append(f"fitted optimum {fit['value']:.6g} ± {2 * fit['value_std']:.3g} (2σ)")
+    return lines

@@ -1,0 +1,110 @@
+"""`pigp report`: the figure and the self-contained page of a run log and of a compare folder."""
+
+from __future__ import annotations
+
+import base64
+import re
+
+import pandas as pd
+import pytest
+import torch
+import yaml
+
+from pigp_torch import cli
+from pigp_torch.prior import PhysicsPrior
+from pigp_torch.report import run_report, write_report
+
+KNOBS = ["01G-QSS4", "02G-QSS3"]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def write_prior(path) -> None:
+    d = len(KNOBS)
+    PhysicsPrior(
+        x0=torch.zeros(d, dtype=torch.float64),
+        f_x0=0.9,
+        f_inf=0.2,
+        precision=4e-3 * torch.eye(d, dtype=torch.float64),
+        amplitude=0.05,
+        noise=0.04,
+        knob_names=list(KNOBS),
+        bounds=torch.tensor([[-30.0] * d, [30.0] * d], dtype=torch.float64),
+    ).save(path)
+
+
+def write_run(folder, method="pigp-physics", budget=6, **over) -> str:
+    write_prior(folder / "prior.json")
+    data = {
+        "machine": {"kind": "sim", "error_seed": 1, "noise": 0.04, "seed": 2},
+        "knobs": {k: [-30, 30] for k in KNOBS},
+        "method": {"name": method},
+        "prior": "prior.json",
+        "budget": budget,
+        "max_step": 0.2,
+        "log": "run.jsonl",
+        **over,
+    }
+    path = folder / "run.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def physics_log(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("run")
+    assert cli.main(["optimize", "--config", write_run(folder), "--quiet"]) == 0
+    return folder / "run.jsonl"
+
+
+def test_report_of_a_simulated_pigp_physics_run(physics_log, capsys):
+    data = run_report(physics_log)
+    assert data["method"] == "pigp-physics" and data["X"].shape == (6, 2)
+    assert data["noise"] == 0.04 and data["true"].shape == (6,)  # simulated: noise-free values
+    fit = data["fit"]
+    assert fit["center"].shape == (2,) and bool((fit["center_std"] > 0).all())
+    assert fit["value_std"] > 0 and any("ended completed" in s for s in data["notices"])
+    out = physics_log.parent / "rep"
+    assert cli.main(["report", str(physics_log), "-o", str(out)]) == 0
+    png, page = out.with_suffix(".png"), out.with_suffix(".html")
+    assert png.read_bytes().startswith(PNG_MAGIC)
+    text = page.read_text()
+    embedded = re.search(r"src='data:image/png;base64,([^']+)'", text).group(1)
+    assert base64.b64decode(embedded) == png.read_bytes()
+    assert "http" not in text.replace("<!DOCTYPE html>", "")  # self-contained: no external link
+    assert "best true value" in text and "fitted optimum" in text
+
+
+def test_report_notices_a_knob_at_its_limit_and_a_running_log(tmp_path):
+    """Nelder-Mead (no fitted optimum) from a start on a bound; a log cut before its end."""
+    config = write_run(tmp_path, method="nelder-mead", budget=3)
+    c = yaml.safe_load(open(config))
+    c["machine"]["x_init"] = {"01G-QSS4": 30.0, "02G-QSS3": 0.0}
+    open(config, "w").write(yaml.safe_dump(c))
+    assert cli.main(["optimize", "--config", config, "--quiet"]) == 0
+    log = tmp_path / "run.jsonl"
+    lines = log.read_text().splitlines()
+    log.write_text("\n".join(ln for ln in lines if '"type":"end"' not in ln) + "\n")
+    data = run_report(log)
+    assert data["fit"] is None and data["status"] == "running (no end record)"
+    assert "01G-QSS4 reached its limit at evaluation 1" in data["notices"]
+    png, page = write_report(log)
+    assert png == tmp_path / "run_report.png" and page.is_file()
+
+
+def test_report_of_a_compare_folder(tmp_path):
+    rows = []
+    for method in ("a", "b"):
+        for seed in (1, 2):
+            for step in range(5):
+                g = (step + seed) / 10 * (2 if method == "a" else 1)
+                rows.append(dict(method=method, machine_seed=seed, step=step, y=g,
+                                 best_f_true=g, gain_fraction=g))  # fmt: skip
+    pd.DataFrame(rows).to_csv(tmp_path / "runs.csv", index=False)
+    assert cli.main(["report", str(tmp_path)]) == 0
+    assert (tmp_path / "report.png").read_bytes().startswith(PNG_MAGIC)
+    assert "data:image/png;base64," in (tmp_path / "report.html").read_text()
+
+
+def test_report_refuses_what_it_cannot_draw(tmp_path, capsys):
+    assert cli.main(["report", str(tmp_path)]) == 2  # a folder without runs.csv
+    assert "no runs.csv" in capsys.readouterr().err
