@@ -16,6 +16,14 @@ try:
 except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
     __version__ = "0.0.0+unknown"
 
-from pigp_torch.loop import optimize
-
 __all__ = ["__version__", "optimize"]
+
+
+def __getattr__(name: str):
+    """``pigp_torch.optimize`` is imported on first use, so that importing the package (and the
+    ``pigp`` command's start-up) does not load torch."""
+    if name == "optimize":
+        from pigp_torch.loop import optimize
+
+        return optimize
+    raise AttributeError(f"module 'pigp_torch' has no attribute {name!r}")
