@@ -54,16 +54,14 @@ def cmd_generate_data(args) -> int:
 # ----------------------------------------------------------------------------- train-surrogate
 def _train_default(name: str):
     """Default of a train_surrogate argument (the single source of the tuned values)."""
-    import inspect
+    from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
-    from pigp_torch.surrogate import train_surrogate
-
-    return inspect.signature(train_surrogate).parameters[name].default
+    return TRAIN_DEFAULTS[name]
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Arguments of ``pigp train-surrogate`` (also used by surrogate_training/train.py)."""
-    from pigp_torch.surrogate.mlp import ACTIVATIONS, TARGETS
+    from pigp_torch.surrogate.defaults import ACTIVATION_NAMES, TARGETS
 
     d = _train_default
     p.add_argument("data", type=Path, help="dataset NPZ written by `pigp generate-data`")
@@ -78,7 +76,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the first member")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--threads", type=int, default=d("num_threads"), help="CPU threads")
-    p.add_argument("--activation", default=d("activation"), choices=sorted(ACTIVATIONS))
+    p.add_argument("--activation", default=d("activation"), choices=list(ACTIVATION_NAMES))
     p.add_argument("--target", default=d("target"), choices=list(TARGETS))
     p.add_argument("--float64", action="store_true", help="train in float64 (default float32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -168,6 +168,20 @@ def _single_objective(vocs: VOCS) -> tuple[str, bool]:
     raise ValueError(f"objective {name!r} must be MAXIMIZE or MINIMIZE, got {type(obj).__name__}")
 
 
+def prior_as_dict(value: Any) -> dict[str, Any]:
+    """A prior field of a generator as plain, validated data (a :class:`PhysicsPrior` or its
+    dict form).
+
+    Raises:
+        ValueError: anything else, or a dict that is not a valid prior.
+    """
+    if isinstance(value, PhysicsPrior):
+        return value.to_dict()
+    if isinstance(value, dict):
+        return PhysicsPrior.from_dict(value).to_dict()  # validates every field
+    raise ValueError(f"prior must be a PhysicsPrior or its dict, got {type(value).__name__}")
+
+
 def _continuous_bounds(vocs: VOCS) -> torch.Tensor:
     """``2 x d`` bounds of the VOCS variables (all must be plain continuous variables)."""
     bad = [
@@ -359,11 +373,7 @@ class PhysicsModelConstructor(ModelConstructor):
     @field_validator("prior", mode="before")
     @classmethod
     def _validate_prior(cls, value: Any) -> dict[str, Any]:
-        if isinstance(value, PhysicsPrior):
-            return value.to_dict()
-        if isinstance(value, dict):
-            return PhysicsPrior.from_dict(value).to_dict()  # validates every field
-        raise ValueError(f"prior must be a PhysicsPrior or its dict, got {type(value).__name__}")
+        return prior_as_dict(value)
 
     @property
     def physics_prior(self) -> PhysicsPrior:

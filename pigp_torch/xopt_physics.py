@@ -44,7 +44,7 @@ from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.runlog import ReplayError, replay
-from pigp_torch.xopt import XOPT_ERROR, _continuous_bounds, _single_objective
+from pigp_torch.xopt import XOPT_ERROR, _continuous_bounds, _single_objective, prior_as_dict
 
 __all__ = ["PhysicsGenerator"]
 
@@ -92,11 +92,7 @@ class PhysicsGenerator(Generator, StateOwner):
     @field_validator("prior", mode="before")
     @classmethod
     def _validate_prior(cls, value: Any) -> dict[str, Any]:
-        if isinstance(value, PhysicsPrior):
-            return value.to_dict()
-        if isinstance(value, dict):
-            return PhysicsPrior.from_dict(value).to_dict()  # validates every field
-        raise ValueError(f"prior must be a PhysicsPrior or its dict, got {type(value).__name__}")
+        return prior_as_dict(value)
 
     def model_post_init(self, context: Any) -> None:
         super().model_post_init(context)

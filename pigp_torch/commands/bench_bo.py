@@ -21,12 +21,12 @@ def _int_list(text: str) -> list[int]:
 def cmd_bench_bo(args) -> int:
     import torch
 
-    from pigp_torch.benchmark.bo_speed import bo_step_times, format_table
+    from pigp_torch.benchmark.bo_speed import DEFAULT_DIMS, DEFAULT_NS, bo_step_times, format_table
 
     torch.set_num_threads(args.threads)
     result = bo_step_times(
-        ns=args.ns,
-        dims=args.dims,
+        ns=args.ns or list(DEFAULT_NS),
+        dims=args.dims or list(DEFAULT_DIMS),
         repeats=args.repeats,
         stock_repeats=args.stock_repeats,
         ml2=not args.no_ml2,
@@ -43,8 +43,6 @@ def cmd_bench_bo(args) -> int:
 
 def register(sub, bench) -> None:
     """Add ``pigp bench bo`` to the ``pigp bench`` sub-parsers."""
-    from pigp_torch.benchmark.bo_speed import DEFAULT_DIMS, DEFAULT_NS
-
     b = bench.add_parser(
         "bo",
         help="step time of the fast PI-GP BO vs stock BoTorch (and warm-started ML-II)",
@@ -58,12 +56,10 @@ def register(sub, bench) -> None:
     b.add_argument(
         "--ns",
         type=_int_list,
-        default=list(DEFAULT_NS),
+        default=None,
         help="observation counts (default 10,50,150,500)",
     )
-    b.add_argument(
-        "--dims", type=_int_list, default=list(DEFAULT_DIMS), help="knob counts (default 13,72)"
-    )
+    b.add_argument("--dims", type=_int_list, default=None, help="knob counts (default 13,72)")
     b.add_argument("--repeats", type=int, default=20, help="timed fast steps per size (20)")
     b.add_argument(
         "--stock-repeats",

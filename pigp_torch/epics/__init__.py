@@ -14,6 +14,7 @@ This package imports nothing heavy (no caproto, no torch): the ``pigp`` command-
 from __future__ import annotations
 
 import argparse
+import socket
 
 #: Default prefix of the ring-wide PVs (loss rate and simulator switches).
 DEFAULT_PREFIX = "SPEAR:"
@@ -70,6 +71,25 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def free_ports(n: int = 1, attempts: int = 50) -> list[int]:
+    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (chosen by the OS; bounded)."""
+    ports: list[int] = []
+    for _ in range(attempts):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+            tcp.bind((LOOPBACK, 0))
+            port = tcp.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                try:
+                    udp.bind((LOOPBACK, port))
+                except OSError:
+                    continue
+        if port not in ports:
+            ports.append(port)
+        if len(ports) == n:
+            return ports
+    raise RuntimeError(f"no {n} free TCP+UDP ports on {LOOPBACK} after {attempts} attempts")
+
+
 __all__ = [
     "DEFAULT_PREFIX",
     "FROZEN_SUFFIX",
@@ -81,4 +101,5 @@ __all__ = [
     "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
     "add_ioc_arguments",
+    "free_ports",
 ]

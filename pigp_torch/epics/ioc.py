@@ -50,7 +50,6 @@ import contextlib
 import gc
 import math
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -75,6 +74,7 @@ from pigp_torch.epics import (
     REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
     add_ioc_arguments,
+    free_ports,
 )
 from pigp_torch.machine.base import check_setting
 
@@ -433,17 +433,7 @@ def patched_environ(values: Mapping[str, str]) -> Iterator[None]:
 
 def free_port(attempts: int = 50) -> int:
     """A port free for both TCP and UDP on 127.0.0.1 (chosen by the OS; bounded attempts)."""
-    for _ in range(attempts):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
-            tcp.bind((LOOPBACK, 0))
-            port = tcp.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-                try:
-                    udp.bind((LOOPBACK, port))
-                except OSError:
-                    continue
-        return port
-    raise RuntimeError(f"no free TCP+UDP port on {LOOPBACK} after {attempts} attempts")
+    return free_ports(1, attempts)[0]
 
 
 # ----------------------------------------------------------------------------- serving

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -51,22 +50,11 @@ REBOOT_SUFFIX = "Sim:Reboot"
 
 
 def free_udp_tcp_ports(n: int = 2, attempts: int = 50) -> list[int]:
-    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (chosen by the OS; bounded)."""
-    ports: list[int] = []
-    for _ in range(attempts):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
-            tcp.bind((LOOPBACK, 0))
-            port = tcp.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-                try:
-                    udp.bind((LOOPBACK, port))
-                except OSError:
-                    continue
-        if port not in ports:
-            ports.append(port)
-        if len(ports) == n:
-            return ports
-    raise RuntimeError(f"no {n} free TCP+UDP ports on {LOOPBACK} after {attempts} attempts")
+    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.epics.
+    free_ports`)."""
+    from pigp_torch.epics import free_ports
+
+    return free_ports(n, attempts)
 
 
 def server_conf(server_port: int, broadcast_port: int) -> dict[str, str]:

@@ -4,10 +4,25 @@ A smooth MLP (twice differentiable, so the prior can take its Hessian), its trai
 validation split and early stopping, and pickle-free save/load.
 """
 
-from pigp_torch.surrogate.ensemble import SurrogateEnsemble, train_ensemble
-from pigp_torch.surrogate.io import load_surrogate, save_surrogate
-from pigp_torch.surrogate.mlp import SurrogateMLP
-from pigp_torch.surrogate.train import train_surrogate
+import importlib
+
+#: public name -> the module that defines it (imported on first use: the ``pigp`` parser reads
+#: :mod:`pigp_torch.surrogate.defaults` without loading torch)
+_EXPORTS = {
+    "SurrogateEnsemble": "ensemble",
+    "train_ensemble": "ensemble",
+    "load_surrogate": "io",
+    "save_surrogate": "io",
+    "SurrogateMLP": "mlp",
+    "train_surrogate": "train",
+}
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "SurrogateEnsemble",

@@ -12,9 +12,10 @@ import math
 import torch
 from torch import nn
 
+from pigp_torch.surrogate.defaults import ACTIVATION_NAMES, DEFAULT_TARGET, TARGETS
+
 ACTIVATIONS = {"silu": nn.SiLU, "tanh": nn.Tanh, "softplus": nn.Softplus, "gelu": nn.GELU}
-TARGETS = ("inv_sq_excess", "log_excess", "inv_excess", "raw")
-DEFAULT_TARGET = "inv_sq_excess"
+assert tuple(sorted(ACTIVATIONS)) == ACTIVATION_NAMES
 
 # Floor keeping log_excess finite where a fitted v leaves its domain (far extrapolation only).
 _FLOOR = 1e-12

@@ -9,7 +9,8 @@ import warnings
 
 import torch
 
-from pigp_torch.surrogate.mlp import DEFAULT_TARGET, TARGETS, SurrogateMLP, _check_bounds
+from pigp_torch.surrogate.defaults import TARGETS, TRAIN_DEFAULTS
+from pigp_torch.surrogate.mlp import SurrogateMLP, _check_bounds
 
 
 def _unpack(data, f_inf, bounds) -> tuple[torch.Tensor, torch.Tensor, float, torch.Tensor]:
@@ -109,23 +110,23 @@ def train_surrogate(
     *,
     f_inf: float | None = None,
     bounds=None,
-    widths=(64, 64, 64),
-    activation: str = "silu",
-    target: str = DEFAULT_TARGET,
-    val_fraction: float = 0.1,
-    batch_size: int = 1024,
-    lr: float = 1e-2,
+    widths=TRAIN_DEFAULTS["widths"],
+    activation: str = TRAIN_DEFAULTS["activation"],
+    target: str = TRAIN_DEFAULTS["target"],
+    val_fraction: float = TRAIN_DEFAULTS["val_fraction"],
+    batch_size: int = TRAIN_DEFAULTS["batch_size"],
+    lr: float = TRAIN_DEFAULTS["lr"],
     lr_min_factor: float = 1e-3,
     weight_decay: float = 0.0,
-    max_epochs: int = 200,
-    patience: int = 40,
+    max_epochs: int = TRAIN_DEFAULTS["max_epochs"],
+    patience: int = TRAIN_DEFAULTS["patience"],
     time_limit: float | None = None,
     excess_floor: float | None = None,
     near_fraction: float = 0.1,
     seed: int = 0,
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
-    num_threads: int | None = 1,
+    num_threads: int | None = TRAIN_DEFAULTS["num_threads"],
     progress: bool = True,
 ) -> tuple[SurrogateMLP, dict]:
     r"""Fit a :class:`SurrogateMLP` to loss-rate samples (validation split, early stopping).
