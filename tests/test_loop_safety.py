@@ -501,7 +501,16 @@ def test_a_reading_taken_while_the_machine_changed_is_discarded(tmp_path):
 
 def test_sighup_takes_the_sigterm_path(tmp_path):
     """SIGHUP (terminal closed) during a run: Terminated with signum SIGHUP, knobs restored, the
-    log ends 'interrupted' naming SIGHUP; the previous handler is put back."""
+    log ends 'interrupted' naming SIGHUP; the previous handler is put back. (SIGHUP starts at
+    its default here, also when the test runner itself was started under nohup.)"""
+    outer = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        _sighup_run(tmp_path)
+    finally:
+        signal.signal(signal.SIGHUP, outer)
+
+
+def _sighup_run(tmp_path):
     previous = signal.getsignal(signal.SIGHUP)
 
     class HungUp(FaultyMachine):

@@ -122,6 +122,7 @@ def test_objective_floor_abort_exits_1(tmp_path, capsys):
 # SIGINT ignored) and `optimize` registered as cli.py will register it.
 CHILD = (
     "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "signal.signal(signal.SIGHUP, signal.SIG_DFL); "
     "import pigp_torch.cli as c; "
     "c.COMMAND_MODULES = tuple(dict.fromkeys((*c.COMMAND_MODULES, 'optimize'))); "
     "sys.exit(c.main(sys.argv[1:]))"
