@@ -308,30 +308,23 @@ def sim_ioc_class(
         units="s",
         doc="fault injection: seconds before a readback follows its setpoint",
     )
-    attrs["nan_readings"] = pvproperty(
-        value=int(nan_readings),
-        name=f"{prefix}{NAN_READINGS_SUFFIX}",
-        dtype=ChannelType.LONG,
-        lower_ctrl_limit=0,
-        upper_ctrl_limit=1_000_000,
-        doc="fault injection: the next N reads of the loss rate return NaN",
-    )
-    attrs["frozen"] = pvproperty(
-        value=0,
-        name=f"{prefix}{FROZEN_SUFFIX}",
-        dtype=ChannelType.LONG,
-        lower_ctrl_limit=0,
-        upper_ctrl_limit=1,
-        doc="fault injection (tests): 1 stops the loss-rate refreshes",
-    )
-    attrs["reboot_on_read"] = pvproperty(
-        value=0,
-        name=f"{prefix}{REBOOT_ON_READ_SUFFIX}",
-        dtype=ChannelType.LONG,
-        lower_ctrl_limit=0,
-        upper_ctrl_limit=1_000_000,
-        doc="fault injection (tests): reboot (knobs to power-on values) at the N-th read",
-    )
+    switches = (  # (attribute, suffix, initial value, upper limit, meaning)
+        ("nan_readings", NAN_READINGS_SUFFIX, int(nan_readings), 1_000_000,
+         "fault injection: the next N reads of the loss rate return NaN"),
+        ("frozen", FROZEN_SUFFIX, 0, 1,
+         "fault injection (tests): 1 stops the loss-rate refreshes"),
+        ("reboot_on_read", REBOOT_ON_READ_SUFFIX, 0, 1_000_000,
+         "fault injection (tests): reboot (knobs to power-on values) at the N-th read"),
+    )  # fmt: skip
+    for attr, suffix, value, upper, doc in switches:
+        attrs[attr] = pvproperty(
+            value=value,
+            name=f"{prefix}{suffix}",
+            dtype=ChannelType.LONG,
+            lower_ctrl_limit=0,
+            upper_ctrl_limit=upper,
+            doc=doc,
+        )
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
 
 

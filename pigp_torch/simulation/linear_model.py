@@ -28,7 +28,7 @@ Observables:
   from the segment's start, so all σ² of a segment are one matrix product of the flattened
   segment-start beam matrices with a precomputed ``36 x 2n_s`` matrix (no per-point propagation).
 
-Speed (why the code looks the way it does; ratios measured on 2 CPU cores, see
+Speed (why the code looks the way it does; the benchmark that times each choice is
 :mod:`~pigp_torch.simulation.throughput`):
 
 * every product with a *fixed* matrix is one large GEMM: the congruence :math:`S R S^T` is

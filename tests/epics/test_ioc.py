@@ -269,40 +269,52 @@ def test_readback_delay_over_ca(ioc, probe):
     assert time.monotonic() - t0 >= 0.4
 
 
-@pytest.mark.slow
-def test_serve_sim_runs_in_the_foreground_and_stops_on_ctrl_c(tmp_path):
-    """`pigp serve-sim` prints the PVs, answers over CA on 127.0.0.1, exits 0 on SIGINT."""
+def _serve_sim(tmp_path, args, *, sigint, ready):
+    """Start `pigp serve-sim ARGS` with SIGINT set to ``sigint`` in the child; wait (<= 90 s)
+    until its log shows ``ready``. Returns ``(process, log path, log text)``."""
     import signal
     import subprocess
     import sys
     import time
 
-    from caproto.threading.client import Context
-
-    port = free_port()
     code = (
         "import argparse, sys; from pigp_torch.commands import serve_sim; "
         "p = argparse.ArgumentParser(); serve_sim.register(p.add_subparsers(), None); "
         "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))"
     )
-    cmd = [sys.executable, "-c", code, "serve-sim", "--port", str(port), "--prefix", "SIM:"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     log = tmp_path / "serve-sim.log"
     with open(log, "wb") as sink:  # a file, not a pipe: polling it never blocks
-        # A job started in the background (nohup, CI runners) inherits SIGINT ignored, and Python
-        # then installs no KeyboardInterrupt handler: give the child the default disposition.
         proc = subprocess.Popen(
-            cmd,
+            [sys.executable, "-c", code, "serve-sim", *args],
             stdout=sink,
             stderr=subprocess.STDOUT,
             env=env,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+            preexec_fn=lambda: signal.signal(signal.SIGINT, sigint),
         )
+    deadline = time.monotonic() + 90
+    while ready not in (out := log.read_text()):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait(10)
+            raise AssertionError(out)
+        time.sleep(0.1)
+    return proc, log, out
+
+
+@pytest.mark.slow
+def test_serve_sim_runs_in_the_foreground_and_stops_on_ctrl_c(tmp_path):
+    """`pigp serve-sim` prints the PVs, answers over CA on 127.0.0.1, exits 0 on SIGINT."""
+    import signal
+
+    from caproto.threading.client import Context
+
+    port = free_port()
+    # A job started in the background (nohup, CI runners) inherits SIGINT ignored, and Python
+    # then installs no KeyboardInterrupt handler: give the child the default disposition.
+    proc, log, out = _serve_sim(tmp_path, ["--port", str(port), "--prefix", "SIM:"],
+                                sigint=signal.SIG_DFL, ready="  SIM:Sim:NanReadings")  # fmt: skip
     try:
-        deadline = time.monotonic() + 90
-        while "  SIM:Sim:NanReadings" not in (out := log.read_text()):
-            assert proc.poll() is None and time.monotonic() < deadline, out
-            time.sleep(0.1)
         assert f"ready on 127.0.0.1:{port}" in out
         assert "  01G-QSS4:CurrSetpt\n" in out and "  SIM:BeamLossRate\n" in out
         with patched_environ(client_environment(port)):
@@ -354,32 +366,12 @@ def test_serve_sim_started_in_the_background_stops_on_sigterm(tmp_path):
     """`pigp serve-sim --knobs 01G-QSS4` started as a script's background job (SIGINT ignored)
     serves the one knob and exits 0 on SIGTERM."""
     import signal
-    import subprocess
-    import sys
-    import time
 
     port = free_port()
-    code = (
-        "import argparse, sys; from pigp_torch.commands import serve_sim; "
-        "p = argparse.ArgumentParser(); serve_sim.register(p.add_subparsers(), None); "
-        "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))"
-    )
-    cmd = [sys.executable, "-c", code, "serve-sim", "--port", str(port), "--knobs", "01G-QSS4"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    log = tmp_path / "serve-sim.log"
-    with open(log, "wb") as sink:
-        proc = subprocess.Popen(  # as `cmd &` in a script: SIGINT ignored
-            cmd,
-            stdout=sink,
-            stderr=subprocess.STDOUT,
-            env=env,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
-        )
+    args = ["--port", str(port), "--knobs", "01G-QSS4"]
+    proc, log, out = _serve_sim(tmp_path, args, sigint=signal.SIG_IGN,
+                                ready="  SPEAR:Sim:RebootOnRead")  # fmt: skip
     try:
-        deadline = time.monotonic() + 90
-        while "  SPEAR:Sim:RebootOnRead" not in (out := log.read_text()):
-            assert proc.poll() is None and time.monotonic() < deadline, out
-            time.sleep(0.1)
         assert "  01G-QSS4:CurrSetpt\n" in out and "02G-QSS3" not in out
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0, log.read_text()
