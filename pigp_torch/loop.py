@@ -751,13 +751,20 @@ def _run_steps(
         bar = tqdm(total=budget, initial=first, desc=str(label))
     try:
         x = x0
+        seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
         for step in range(first, budget):
             t_set = time.time()
             ask_time = 0.0
+            notices: list[dict] = []
             if step > 0:
                 t0 = time.perf_counter()
                 x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
                 ask_time = time.perf_counter() - t0
+                notices = list(getattr(optimizer, "notices", ())[seen:])
+                seen += len(notices)
+            if log is not None:
+                for notice in notices:  # the optimizer's own findings, before the move
+                    log.write("notice", step=step, time=_utc_now(), **notice)
             t0 = time.perf_counter()
             # the start point and the first point of a resumed run are always ramped to
             y, reads = evaluate(x, ramp=(moves == "ramp" or step == first), step=step)
@@ -765,6 +772,8 @@ def _run_steps(
             eval_time = time.perf_counter() - t0
             row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
             row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
+            if notices:
+                row["notices"] = [n["message"] for n in notices]
             with guard.held():  # a signal never splits the log record from the table row
                 if log is not None:  # on disk before the optimizer hears of it
                     log.log_evaluation(

@@ -103,6 +103,8 @@ class ProgressLine:
     def __call__(self, row: dict) -> None:
         """:func:`pigp_torch.optimize` callback: print the line of one table row."""
         line = self.format(int(row["step"]), [row[n] for n in self.knob_names], float(row["y"]))
+        for message in row.get("notices", ()):  # the optimizer's findings, e.g. a prior rejected
+            line += f"\n{self.label + '  ' if self.label else ''}NOTICE  {message}"
         with contextlib.suppress(OSError, ValueError):  # a closed terminal never stops a run
             print(line, file=self.out or sys.stdout, flush=True)
 
@@ -125,10 +127,15 @@ class _ReportingBuilder:
         )
         tell = optimizer.tell
 
+        seen = [0]
+
         def tell_and_report(x, y):
             tell(x, y)
             step = optimizer.n_told - 1
             text = line.format(step, torch.as_tensor(x, dtype=DTYPE).reshape(-1).tolist(), y)
+            for notice in optimizer.notices[seen[0] :]:
+                text += f"\n{line.label}  NOTICE  {notice['message']}"
+            seen[0] = len(optimizer.notices)
             with contextlib.suppress(OSError, ValueError):  # a closed terminal
                 print(text, file=sys.stdout, flush=True)
 

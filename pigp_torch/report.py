@@ -140,6 +140,8 @@ def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
         out.append(f"resumed at evaluation {int(s.get('first_step', 0)) + 1}")
     for r in records.discarded:
         out.append(f"reading discarded at evaluation {int(r['step']) + 1}: {r.get('reason', '')}")
+    for r in records.notices:
+        out.append(f"evaluation {int(r['step']) + 1}: {r.get('message', '')}")
     if bounds is not None and len(X):
         span = bounds[1] - bounds[0]
         at = (X <= bounds[0] + 1e-6 * span) | (X >= bounds[1] - 1e-6 * span)

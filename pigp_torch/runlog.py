@@ -62,7 +62,7 @@ FORMAT_TAG = "pigp_torch.RunLog"
 FORMAT_VERSION = 2
 #: Versions :func:`read_log` accepts (version 1 had no intent or discarded records).
 READABLE_VERSIONS = (1, 2)
-RECORD_TYPES = ("header", "start", "evaluation", "end", "intent", "discarded")
+RECORD_TYPES = ("header", "start", "evaluation", "end", "intent", "discarded", "notice")
 END_STATUSES = ("completed", "interrupted", "aborted", "failed")
 
 
@@ -320,6 +320,8 @@ class RunRecords:
         ends: ``end`` records.
         intents: ``intent`` records (the settings commanded, in order).
         discarded: ``discarded`` records (readings thrown away).
+        notices: ``notice`` records (what the optimizer decided about itself, e.g. that its
+            physics prior does not explain the readings).
     """
 
     path: Path
@@ -329,6 +331,7 @@ class RunRecords:
     ends: list[dict] = field(default_factory=list)
     intents: list[dict] = field(default_factory=list)
     discarded: list[dict] = field(default_factory=list)
+    notices: list[dict] = field(default_factory=list)
 
     @property
     def last_intent(self) -> dict | None:
@@ -434,6 +437,8 @@ def read_log(path: str | Path) -> RunRecords:
             out.intents.append(rec)
         elif kind == "discarded":
             out.discarded.append(rec)
+        elif kind == "notice":
+            out.notices.append(rec)
         else:
             _check_evaluation(rec, len(out.evaluations), d, path)
             d = d or len(rec["x"])

@@ -75,6 +75,7 @@ class AskTellOptimizer:
         self.maximize = bool(maximize)
         self.X: list[torch.Tensor] = []
         self.Y: list[float] = []
+        self.notices: list[dict] = []
 
     @property
     def dim(self) -> int:
@@ -100,6 +101,14 @@ class AskTellOptimizer:
             raise ValueError(f"objective value must be finite, got {y}")
         self.X.append(x)
         self.Y.append(y)
+
+    def notify(self, kind: str, message: str, **data) -> dict:
+        """Record a notice for the operator: ``{"kind", "message", "at_told", **data}``
+        (``at_told``: the measurements told so far). The loop writes each new notice to the
+        run log and the progress line; returns the notice."""
+        notice = {"kind": str(kind), "message": str(message), "at_told": self.n_told, **data}
+        self.notices.append(notice)
+        return notice
 
     def ask(self) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
