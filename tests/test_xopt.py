@@ -19,8 +19,8 @@ from xopt.numerical_optimizer import LBFGSOptimizer
 
 from pigp_torch import optimize
 from pigp_torch.benchmark import RunContext
-from pigp_torch.benchmark.xopt_methods import XOPT_METHODS
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.methods import METHODS as XOPT_METHODS
 from pigp_torch.models import physics_informed_gp
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.xopt import (

@@ -1,10 +1,9 @@
-r"""Benchmark methods run through Xopt: stock Xopt UCB and Xopt UCB with the physics prior.
+r"""Methods run through Xopt: stock Xopt UCB and Xopt UCB with the physics prior.
 
-Imported only when these methods are used (Xopt is the optional extra ``xopt``); each builder
-imports :mod:`pigp_torch.xopt` inside, so even importing this module does not need Xopt.
+Xopt is the optional extra ``xopt``: each builder imports :mod:`pigp_torch.xopt` when a run is
+built, so registering these methods does not need Xopt.
 
-Methods (:data:`XOPT_METHODS`, registered into
-:data:`~pigp_torch.benchmark.methods.METHODS`):
+Methods (registered in :data:`~pigp_torch.methods.METHODS`):
 
 * ``xopt-ucb`` — what an Xopt user would pick instead of pigp: Xopt 3's
   :class:`~xopt.generators.bayesian.UpperConfidenceBoundGenerator` with its defaults as
@@ -17,9 +16,8 @@ Methods (:data:`XOPT_METHODS`, registered into
   go anywhere in the ±30 A box) and no TuRBO. Like every method it starts from the single
   skews-off reading (no random initial design: a control-room user starts from the machine's
   state). One deviation from the stock object: ``numerical_optimizer.max_time = None`` instead of
-  5 s, so a run does not depend on the load of the computer (a step, GP fit plus acquisition,
-  took about 1 s of CPU at 100 points here; on a busy computer the 5 s wall-clock limit would cut
-  the acquisition search short at random).
+  5 s, so a run does not depend on the load of the computer (on a busy computer a wall-clock
+  limit cuts the acquisition search short at random).
 * ``xopt-ucb-travel`` — the same with ``max_travel_distances = 0.15`` of each knob's range (the
   safety limit Xopt/Badger users set on a machine; ±0.15 of the range is our trust box of ±0.3 of
   the half-range, but Xopt centres it on the LAST point, not the best one).
@@ -31,7 +29,7 @@ Methods (:data:`XOPT_METHODS`, registered into
 
 from __future__ import annotations
 
-from pigp_torch.benchmark.methods import MethodSpec, RunContext
+from pigp_torch.methods.registry import RunContext
 
 #: Fraction of each knob's full range per step for the travel-limited variants (= ±0.3 of the
 #: half-range, the trust box of the native BO methods).
@@ -125,13 +123,3 @@ def build_xopt_pigp(
         vocs=vocs, gp_constructor=constructor, **kwargs, **generator_options
     )
     return XoptOptimizer(gen, seed=ctx.seed)
-
-
-#: The Xopt methods (merge into ``METHODS`` with ``METHODS.update(XOPT_METHODS)``).
-XOPT_METHODS: dict[str, MethodSpec] = {
-    "xopt-ucb": MethodSpec("xopt-ucb", build_xopt_ucb, "gp"),
-    "xopt-ucb-travel": MethodSpec(
-        "xopt-ucb-travel", build_xopt_ucb, "gp", {"max_travel_distances": TRAVEL_FRACTION}
-    ),
-    "xopt-pigp": MethodSpec("xopt-pigp", build_xopt_pigp, "gp"),
-}
