@@ -36,7 +36,7 @@ from pigp_torch.runlog import read_log
 
 def _load_run_config(records):
     """The logged configuration (``None`` when the header has none or it no longer loads)."""
-    from pigp_torch.config import logged_config
+    from pigp_torch.run import logged_config
 
     try:
         return logged_config(records)
@@ -46,7 +46,7 @@ def _load_run_config(records):
 
 def _fitted_optimum(config, X: torch.Tensor, Y: torch.Tensor) -> dict | None:
     """``pigp-physics``: refit the form to all readings; centre, its std, value at the optimum."""
-    from pigp_torch.config import build_optimizer
+    from pigp_torch.run import build_optimizer
 
     if config is None or config.method.name != "pigp-physics" or len(Y) < 2:
         return None
@@ -99,7 +99,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
     true, unit = None, ""
     sigma = noise
     if config is not None and config.machine.kind == "sim":
-        from pigp_torch.config import build_machine
+        from pigp_torch.run import build_machine
 
         machine = build_machine(config)
         sigma = float(config.machine.noise)

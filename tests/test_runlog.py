@@ -8,10 +8,10 @@ import os
 import pytest
 import torch
 
-from pigp_torch.config import advance_simulated_noise, build_run, validate_config
 from pigp_torch.loop import optimize
 from pigp_torch.optimizers import RCDS, NelderMead
 from pigp_torch.prior import PhysicsPrior
+from pigp_torch.run import advance_simulated_noise, build_run, validate_config
 from pigp_torch.runlog import FORMAT_TAG, ReplayError, RunLog, file_sha256, read_log, replay
 
 D = torch.float64

@@ -36,8 +36,14 @@ EXIT_INPUT = 2  # invalid input (run file, log, arguments); nothing was moved
 EXIT_NOT_RESTORED = 3  # the knobs were NOT restored (any cause): see the last setpoint
 EXIT_LOCKED = 4  # another run holds the run log or the machine; nothing was moved
 
-#: Methods of ``pigp optimize`` (the same names as :data:`pigp_torch.config.METHOD_NAMES`).
-METHODS = ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "rcds")
+DESCRIPTION = (
+    "Run an optimizer ({methods}) on the machine described by a "
+    "YAML/JSON run file. Every evaluation is appended to a JSON-lines run log before the "
+    "next step, and every setting is logged before it is written; the initial knobs are "
+    "restored on Ctrl-C, SIGTERM, SIGHUP, errors and at the end (unless restore: best). "
+    "One run per run log and per machine (lock files). --resume LOG continues a logged run "
+    "and restores to the knobs of its first start; --dry-run only prints the plan."
+)
 
 EXIT_HELP = """exit status:
   0    completed; the knobs restored (or set to the best point with restore: best)
@@ -51,20 +57,30 @@ EXIT_HELP = """exit status:
 """
 
 
+def _list_methods_in_help(p: argparse.ArgumentParser) -> None:
+    """Name the run-file methods of the registry in ``p``'s help, read when the help is shown
+    (the registry imports torch; building the parser must not)."""
+    format_help = p.format_help
+
+    def with_methods() -> str:
+        from pigp_torch.methods import run_file_methods
+
+        p.description = DESCRIPTION.format(methods=", ".join(run_file_methods()))
+        return format_help()
+
+    p.format_help = with_methods
+
+
 def register(sub, bench) -> None:
     """Add ``pigp optimize`` to the top-level sub-parsers ``sub`` (``bench`` is unused)."""
     p = sub.add_parser(
         "optimize",
         help="optimize a machine (simulated or EPICS) from a run file, with a run log",
-        description=f"Run an optimizer ({', '.join(METHODS)}) on the machine described by a "
-        "YAML/JSON run file. Every evaluation is appended to a JSON-lines run log before the "
-        "next step, and every setting is logged before it is written; the initial knobs are "
-        "restored on Ctrl-C, SIGTERM, SIGHUP, errors and at the end (unless restore: best). "
-        "One run per run log and per machine (lock files). --resume LOG continues a logged run "
-        "and restores to the knobs of its first start; --dry-run only prints the plan.",
+        description=DESCRIPTION.format(methods="the methods of pigp_torch.methods"),
         epilog=EXIT_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    _list_methods_in_help(p)
     p.add_argument(
         "--config",
         type=Path,
@@ -259,8 +275,8 @@ def _check_log_path(path: Path) -> None:
 def cmd_optimize(args) -> int:
     import torch
 
-    from pigp_torch.config import build_run, check_resume, load_config, logged_config
     from pigp_torch.machine.errors import MachineError
+    from pigp_torch.run import build_run, check_resume, load_config, logged_config
     from pigp_torch.runlock import LockHeld, holding
     from pigp_torch.runlog import read_log
 
@@ -324,9 +340,9 @@ def cmd_optimize(args) -> int:
 
 
 def _run(args, setup, records, log_lock) -> int:
-    from pigp_torch.config import advance_simulated_noise
     from pigp_torch.loop import RunAborted, Terminated
     from pigp_torch.machine.errors import MachineError
+    from pigp_torch.run import advance_simulated_noise
     from pigp_torch.runlog import RunLog
 
     config = setup.config

@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
+from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds, max_step_tensor
 
 
 @runtime_checkable
@@ -39,32 +39,6 @@ class Machine(Protocol):
     def get(self) -> torch.Tensor:
         """The current knob setting (``d`` float64)."""
         ...
-
-
-def max_step_tensor(max_step, bounds: torch.Tensor) -> torch.Tensor | None:
-    r"""Per-knob maximum change per ``set`` as a ``d`` tensor (``None``: unlimited).
-
-    A scalar ``s`` is a fraction of each knob's half-range, :math:`s\,(h - \ell)/2` (the same
-    normalization as the BayesOpt ``step_limit``: knobs mapped to :math:`[-1, 1]`); a ``d`` tensor
-    gives absolute limits in knob units.
-
-    Raises:
-        ValueError: non-positive, non-finite, or wrongly shaped limits.
-    """
-    if max_step is None:
-        return None
-    bounds = check_bounds(bounds)
-    m = torch.as_tensor(max_step, dtype=DTYPE)
-    if m.dim() == 0:
-        m = m * (bounds[1] - bounds[0]) / 2
-    elif m.shape != (bounds.shape[1],):
-        raise ValueError(
-            f"max_step must be a scalar fraction or a ({bounds.shape[1]},) tensor; "
-            f"got shape {tuple(m.shape)}"
-        )
-    if not torch.isfinite(m).all() or (m <= 0).any():
-        raise ValueError("max_step entries must be positive and finite")
-    return m
 
 
 def check_setting(

@@ -219,12 +219,12 @@ def test_a_run_over_channel_access_against_the_simulated_ioc(tmp_path, capsys):
 def test_help_lists_every_method_and_the_exit_codes(capsys):
     """`pigp optimize --help` names every method of the run files and documents each exit
     status, the one for knobs NOT restored and the one for a refused lock included."""
-    from pigp_torch.config import METHOD_NAMES
+    from pigp_torch.methods import run_file_methods
 
     with pytest.raises(SystemExit):
         cli.main(["optimize", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    for name in METHOD_NAMES:
+    for name in run_file_methods():
         assert name in text
     assert "3 the knobs were NOT restored" in text and "4 refused: another run holds" in text
     assert "129 stopped by SIGHUP" in text

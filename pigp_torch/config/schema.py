@@ -1,0 +1,347 @@
+r"""Run files of ``pigp optimize``: the schema (pydantic models) of a run configuration.
+
+A run file (YAML or JSON) names everything a run on a machine needs; it is validated as a whole
+(pydantic v2, unknown keys refused) before anything is connected or moved::
+
+    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access
+      kind: sim
+      error_seed: 1
+      noise: 0.04                 # mA/min
+    knobs:                        # name: [lower, upper], in knob units (amperes of the windings)
+      01G-QSS4: [-30, 30]
+      02G-QSS3: [-30, 30]
+    objective: {maximize: true}   # epics: {pv: SPEAR:BeamLossRate, maximize: true}
+    method: {name: nelder-mead, options: {initial_simplex_size: 0.05}}
+    prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match
+    budget: 60
+    max_step: 0.1                 # required: fraction of each knob's half-range, {knob: value},
+                                  # or the word unlimited (no step limit, deliberately)
+    log: runs/sim.jsonl           # the run log (JSON lines)
+    restore: initial              # or best (set the best observed point at the end)
+    read_retries: 2
+    objective_floor: null         # abort when a reading falls below this
+
+Relative paths (``prior``, ``log``, ``lock_dir``) are taken relative to the run file's folder.
+
+A key given twice in a file is an error (YAML and JSON alike), not "the last one wins".
+``max_step`` has no default: a number, a per-knob mapping, or the word ``unlimited``; ``null``
+is refused. :meth:`RunConfig.warnings` names every step limit above 10 % of its knob's range
+(``pigp optimize`` prints them).
+
+``method.name`` is one of the methods that run files accept (``pigp``, ``pigp-fast``,
+``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``; :mod:`pigp_torch.methods` describes them)
+and ``method.options`` are its builder's options. This module checks the file's structure only;
+the method, its options and the prior file are checked against the method registry by
+:func:`pigp_torch.run.validate_config` (which ``pigp optimize`` calls).
+
+Every error is reported at once, one line per problem, as a :class:`ConfigError` (a
+``ValueError``) naming the key: a wrong key, a missing PV name, bounds with lower >= upper.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import torch
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from pigp_torch._utils import DTYPE, max_step_tensor
+
+
+class ConfigError(ValueError):
+    """An invalid run configuration (the message lists every problem, one per line)."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# ------------------------------------------------------------------------------------ models
+class SimMachineConfig(_Section):
+    r"""The simulated ring: :class:`~pigp_torch.simulation.Spear3Coupling` behind a
+    :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise.
+
+    The configured knobs are the simulator's skew windings (names like ``01G-QSS4``); their bounds
+    must lie within the simulator's range (±30 A).
+
+    Attributes:
+        error_seed: error seed of the simulated machine.
+        optics: the SPEAR3 deck, ``"user"`` (default), ``"design"`` or ``"low_emittance"``.
+        noise: reading noise standard deviation (mA/min).
+        seed: seed of the noise stream.
+        x_init: knob values the machine starts at (unlisted knobs: 0).
+    """
+
+    kind: Literal["sim"]
+    error_seed: int = 1
+    optics: Literal["user", "design", "low_emittance"] = "user"
+    noise: float = Field(0.04, ge=0.0)
+    seed: int = 0
+    x_init: dict[str, float] | None = None
+
+
+class EpicsMachineConfig(_Section):
+    r"""A machine over EPICS Channel Access (:class:`pigp_torch.machine.epics.EpicsMachine`).
+
+    PV names are ``setpoint_pvs[knob]`` (default ``knob + setpoint_suffix``) and
+    ``readback_pvs[knob]`` (default ``knob + readback_suffix``); the objective PV is
+    ``objective.pv``. The timing and averaging fields are passed to the machine. The readback
+    tolerance is ``tolerance`` (knob units) or ``tolerance_fraction`` (of each knob's range);
+    with neither, the machine's default (a millionth of the range: right for a simulated IOC,
+    too tight for a real magnet's noisy readback). ``stale_timeout`` (s, default 10): how long
+    a reading may wait for the objective PV's timestamp to advance. ``protocol``: ``ca``
+    (Channel Access, :class:`~pigp_torch.machine.epics.EpicsMachine`, default) or ``pva``
+    (pvAccess, :class:`~pigp_torch.machine.pva.PvaMachine`, the ``pva`` extra; the client is
+    configured from ``EPICS_PVA_*`` in the environment).
+    """
+
+    kind: Literal["epics"]
+    protocol: Literal["ca", "pva"] = "ca"
+    setpoint_pvs: dict[str, str] | None = None
+    readback_pvs: dict[str, str] | None = None
+    setpoint_suffix: str = ":CurrSetpt"
+    readback_suffix: str = ":Curr1"
+    settle_time: float = Field(0.5, ge=0.0)
+    tolerance: float | None = Field(None, gt=0.0)
+    tolerance_fraction: float | None = Field(None, gt=0.0, lt=1.0)
+    n_average: int = Field(1, ge=1)
+    average_interval: float = Field(0.0, ge=0.0)
+    timeout: float = Field(2.0, gt=0.0)
+    stale_timeout: float = Field(10.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _one_tolerance(self) -> EpicsMachineConfig:
+        if self.tolerance is not None and self.tolerance_fraction is not None:
+            raise ValueError("give tolerance (knob units) or tolerance_fraction, not both")
+        return self
+
+
+MachineConfig = Annotated[SimMachineConfig | EpicsMachineConfig, Field(discriminator="kind")]
+
+
+class ObjectiveConfig(_Section):
+    """What is optimized: ``pv`` (EPICS only) and the direction."""
+
+    pv: str | None = None
+    maximize: bool = True
+
+
+class MethodConfig(_Section):
+    """The optimizer: ``name`` (a run-file method of :mod:`pigp_torch.methods`, checked by
+    :func:`pigp_torch.run.validate_config`), its ``options`` and its ``seed`` (BayesOpt's per-ask
+    seed; Nelder–Mead and RCDS are deterministic)."""
+
+    name: str
+    seed: int = 0
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+def _resolve(path: Path | None, info: ValidationInfo) -> Path | None:
+    base = (info.context or {}).get("base_dir")
+    if path is None or path.is_absolute() or base is None:
+        return path
+    return Path(os.path.normpath(Path(base) / path))  # "a/../b" -> "b" (plain text, no I/O)
+
+
+class RunConfig(_Section):
+    r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
+
+    Attributes:
+        machine: :class:`SimMachineConfig` or :class:`EpicsMachineConfig` (by ``kind``).
+        knobs: ``{name: (lower, upper)}`` in knob order.
+        objective: :class:`ObjectiveConfig`.
+        method: :class:`MethodConfig`.
+        prior: a :class:`~pigp_torch.prior.PhysicsPrior` JSON file (required by the methods
+            built from the physics prior).
+        budget: evaluations, the start point included.
+        max_step: largest change of a knob per ``set`` (required): a fraction of each knob's
+            half-range, ``{knob: absolute}``, or ``"unlimited"`` (no step limit).
+        log: the run log to write.
+        restore: ``"initial"`` (put the knobs back) or ``"best"`` (set the best observed point).
+        read_retries: extra read attempts after an invalid reading (the loop's; the EPICS
+            machine is given none of its own, so this is the total).
+        retry_interval: seconds before each extra read attempt.
+        objective_floor: abort when a reading falls below this (``None``: no floor).
+        readback_tolerance: allowed readback error after the final set, a fraction of the range.
+        restore_attempts: attempts at restoring the knobs at the end (default 3).
+        restore_interval: seconds between those attempts (default 1).
+        lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
+            ``<tmp>/pigp-locks``; see :mod:`pigp_torch.runlock`).
+    """
+
+    machine: MachineConfig
+    knobs: dict[str, tuple[float, float]]
+    objective: ObjectiveConfig = Field(default_factory=ObjectiveConfig)
+    method: MethodConfig
+    prior: Path | None = None
+    budget: int = Field(ge=1)
+    max_step: float | dict[str, float] | Literal["unlimited"]
+    log: Path
+    restore: Literal["initial", "best"] = "initial"
+    read_retries: int = Field(2, ge=0)
+    retry_interval: float = Field(0.1, ge=0.0)
+    objective_floor: float | None = None
+    readback_tolerance: float = Field(1e-3, ge=0.0)
+    restore_attempts: int = Field(3, ge=1, le=100)
+    restore_interval: float = Field(1.0, ge=0.0)
+    lock_dir: Path | None = None
+
+    _prior = PrivateAttr(default=None)
+
+    @field_validator("max_step", mode="before")
+    @classmethod
+    def _explicit_max_step(cls, value):
+        if value is None:
+            raise ValueError(
+                "null is not a step limit: give a fraction of each knob's half-range (e.g. 0.1), "
+                "a {knob: value} mapping, or write unlimited to run without a step limit"
+            )
+        if isinstance(value, str) and value != "unlimited":
+            raise ValueError(
+                f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
+                "the word unlimited (no step limit)"
+            )
+        return value
+
+    @field_validator("knobs")
+    @classmethod
+    def _check_knobs(cls, knobs: dict[str, tuple[float, float]]):
+        if not knobs:
+            raise ValueError("at least one knob is needed")
+        for name, (lo, hi) in knobs.items():
+            if not name.strip():
+                raise ValueError("knob names must not be empty")
+            if not lo < hi:
+                raise ValueError(f"knob {name!r}: lower bound {lo} must be below upper bound {hi}")
+        return knobs
+
+    @field_validator("prior", "log", "lock_dir")
+    @classmethod
+    def _resolve_paths(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        return _resolve(path, info)
+
+    @model_validator(mode="after")
+    def _check_run(self) -> RunConfig:
+        names = list(self.knobs)
+        if isinstance(self.max_step, dict):
+            _same_knobs("max_step", self.max_step, names)
+            bad = [k for k, v in self.max_step.items() if not v > 0]
+            if bad:
+                raise ValueError(f"max_step: the limits of {bad} must be positive")
+        elif isinstance(self.max_step, float) and not self.max_step > 0:
+            raise ValueError(f"max_step must be positive (or unlimited), got {self.max_step}")
+        m = self.machine
+        if isinstance(m, SimMachineConfig):
+            if self.objective.pv is not None:
+                raise ValueError("objective.pv is for the epics machine; the sim reads its model")
+            for name, value in (m.x_init or {}).items():
+                if name not in self.knobs:
+                    raise ValueError(f"machine.x_init: {name!r} is not a configured knob")
+                lo, hi = self.knobs[name]
+                if not lo <= value <= hi:
+                    raise ValueError(f"machine.x_init: {name} = {value} lies outside [{lo}, {hi}]")
+        else:
+            if not (self.objective.pv or "").strip():
+                raise ValueError("objective.pv: the epics machine needs the objective's PV name")
+            for key in ("setpoint_pvs", "readback_pvs"):
+                pvs = getattr(m, key)
+                if pvs is not None:
+                    _same_knobs(f"machine.{key}", pvs, names, what="no PV name for knobs")
+                    empty = [k for k, v in pvs.items() if not v.strip()]
+                    if empty:
+                        raise ValueError(f"machine.{key}: empty PV name for knobs {empty}")
+        return self
+
+    # -- derived values ---------------------------------------------------------------------------
+    @property
+    def knob_names(self) -> list[str]:
+        return list(self.knobs)
+
+    def bounds(self) -> torch.Tensor:
+        """``2 x d`` knob bounds in knob order."""
+        return torch.tensor(list(zip(*self.knobs.values(), strict=True)), dtype=DTYPE)
+
+    def machine_max_step(self) -> float | torch.Tensor | None:
+        """``max_step`` as the machines take it: a fraction, a ``d`` absolute tensor, or
+        ``None`` (unlimited)."""
+        if isinstance(self.max_step, dict):
+            return torch.tensor([self.max_step[n] for n in self.knobs], dtype=DTYPE)
+        if self.max_step == "unlimited":
+            return None
+        return self.max_step
+
+    def warnings(self) -> list[str]:
+        """Safety warnings (no error): no step limit, or a knob's limit above 10 % of its
+        range (one line naming every such knob)."""
+        if self.max_step == "unlimited":
+            return ["max_step: unlimited: no step limit, a proposal is reached in one set"]
+        bounds = self.bounds()
+        width = bounds[1] - bounds[0]
+        limit = max_step_tensor(self.machine_max_step(), bounds)
+        big = [
+            f"{n} {float(limit[i]):.4g} ({100 * float(limit[i] / width[i]):.0f} %)"
+            for i, n in enumerate(self.knobs)
+            if float(limit[i]) > 0.1 * float(width[i])
+        ]
+        if not big:
+            return []
+        return [f"max_step above 10 % of the knob's range: {', '.join(big)}"]
+
+    def pv_names(self) -> list[str]:
+        """Every PV the run uses (setpoints, readbacks, objective); empty for the simulator."""
+        m = self.machine
+        if not isinstance(m, EpicsMachineConfig):
+            return []
+        names = self.knob_names
+        sp = m.setpoint_pvs or {n: f"{n}{m.setpoint_suffix}" for n in names}
+        rb = m.readback_pvs or {n: f"{n}{m.readback_suffix}" for n in names}
+        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv)]
+
+    def safety_lines(self) -> list[str]:
+        """The safety limits of the run, one line each (printed when a run is resumed from the
+        log header alone)."""
+        floor = "none" if self.objective_floor is None else f"{self.objective_floor:g}"
+        box = ", ".join(f"{n} [{lo:g}, {hi:g}]" for n, (lo, hi) in self.knobs.items())
+        return [
+            f"knobs and bounds: {box}",
+            f"max_step: {self.max_step}",
+            f"restore: {self.restore}; objective floor: {floor}; read retries: "
+            f"{self.read_retries}; readback tolerance: {self.readback_tolerance:g} of the range",
+        ]
+
+    def get_prior(self):
+        """The loaded :class:`~pigp_torch.prior.PhysicsPrior` (``None`` without a prior file, or
+        before :func:`pigp_torch.run.validate_config` loaded it)."""
+        return self._prior
+
+    def attach_prior(self, prior) -> None:
+        """Keep ``prior``, the :class:`~pigp_torch.prior.PhysicsPrior` read from :attr:`prior`
+        (the run layer reads and checks the file; this module does no I/O)."""
+        self._prior = prior
+
+
+def _same_knobs(key: str, mapping: dict, names: list[str], what: str = "missing knobs") -> None:
+    missing = [n for n in names if n not in mapping]
+    extra = [k for k in mapping if k not in names]
+    if missing:
+        raise ValueError(f"{key}: {what} {missing}")
+    if extra:
+        raise ValueError(f"{key}: {extra} are not configured knobs")
+
+
+def config_digest(dump: dict) -> str:
+    """Hex sha256 of a configuration dump (``model_dump(mode="json")``), canonical JSON."""
+    text = json.dumps(dump, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()

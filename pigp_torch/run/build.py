@@ -1,0 +1,206 @@
+r"""Building a run from a validated configuration: the optimizer (from the method registry), the
+machine (simulated or EPICS), the prior's provenance, and the loop with the run's safety options.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.config import (
+    ConfigError,
+    EpicsMachineConfig,
+    RunConfig,
+    SimMachineConfig,
+    config_digest,
+)
+from pigp_torch.methods import METHODS, RunContext
+from pigp_torch.runlog import file_sha256
+
+
+class _BoundedSim:
+    """A simulator seen with the run's knob bounds (the simulated machine takes them from it)."""
+
+    def __init__(self, sim, bounds: torch.Tensor) -> None:
+        self.sim = sim
+        self.bounds = bounds
+        self.knob_names = list(sim.knob_names)
+
+    def evaluate(self, x):
+        return self.sim.evaluate(x)
+
+    def __repr__(self) -> str:
+        return f"{self.sim!r} within the run's bounds"
+
+
+def build_optimizer(config: RunConfig):
+    r"""The configured optimizer (nothing is connected; bad option values raise here).
+
+    The registry's builder of ``config.method.name`` with the run's options, bounds, seed and
+    direction; no noise level (each optimizer keeps its own default, or ``noise`` from the
+    options) and no archive (a live machine has none).
+
+    Raises:
+        ConfigError: the builder refused an option value.
+    """
+    name = config.method.name
+    spec = METHODS[name].with_options(**config.method.options)
+    ctx = RunContext(
+        prior=config.get_prior(),
+        seed=config.method.seed,
+        noise=None,
+        archive_size=0,
+        maximize=config.objective.maximize,
+        knob_bounds=config.bounds(),
+    )
+    try:
+        return spec.build(ctx)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"method {name}: {err}") from err
+
+
+def build_machine(config: RunConfig):
+    r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
+    names, bounds, m = config.knob_names, config.bounds(), config.machine
+    tolerance = m.tolerance if isinstance(m, EpicsMachineConfig) else None
+    if isinstance(m, EpicsMachineConfig) and m.tolerance_fraction is not None:
+        tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
+    if isinstance(m, SimMachineConfig):
+        from pigp_torch.machine import SimulatedMachine
+        from pigp_torch.simulation import Spear3Coupling
+
+        sim = Spear3Coupling(m.error_seed, knobs=names, optics=m.optics)
+        outside = [
+            n
+            for n, lo, hi in zip(names, bounds[0].tolist(), bounds[1].tolist(), strict=True)
+            if lo < float(sim.bounds[0, 0]) or hi > float(sim.bounds[1, 0])
+        ]
+        if outside:
+            raise ConfigError(
+                f"knobs {outside}: bounds outside the simulator's range "
+                f"[{float(sim.bounds[0, 0])}, {float(sim.bounds[1, 0])}]"
+            )
+        x_init = torch.tensor([(m.x_init or {}).get(n, 0.0) for n in names], dtype=DTYPE)
+        x_init = torch.minimum(torch.maximum(x_init, bounds[0]), bounds[1])  # 0 may lie outside
+        return SimulatedMachine(
+            _BoundedSim(sim, bounds),
+            noise=m.noise,
+            seed=m.seed,
+            max_step=config.machine_max_step(),
+            x_init=x_init,
+        )
+    if m.protocol == "pva":
+        from pigp_torch.machine.pva import PvaMachine as EpicsMachine  # lazily: needs p4p
+    else:
+        from pigp_torch.machine.epics import EpicsMachine  # lazily: needs caproto
+
+    def pv_list(pvs: dict[str, str] | None) -> list[str] | None:
+        return None if pvs is None else [pvs[n] for n in names]
+
+    return EpicsMachine(
+        names,
+        bounds,
+        config.objective.pv,
+        setpoint_pvs=pv_list(m.setpoint_pvs),
+        readback_pvs=pv_list(m.readback_pvs),
+        setpoint_suffix=m.setpoint_suffix,
+        readback_suffix=m.readback_suffix,
+        settle_time=m.settle_time,
+        tolerance=tolerance,
+        n_average=m.n_average,
+        average_interval=m.average_interval,
+        timeout=m.timeout,
+        stale_timeout=m.stale_timeout,
+        max_step=config.machine_max_step(),
+        read_retries=0,  # the loop retries (config.read_retries), for every machine alike
+    )
+
+
+def prior_record(config: RunConfig) -> dict | None:
+    """The prior's provenance for the run log: path, sha256 of the file, its metadata."""
+    prior = config.get_prior()
+    if prior is None:
+        return None
+    return {
+        "path": str(Path(config.prior).resolve()),
+        "sha256": file_sha256(config.prior),
+        "knob_names": list(prior.knob_names),
+        "metadata": prior.provenance,
+    }
+
+
+@dataclass
+class RunSetup:
+    r"""Everything built for one run: the configuration, optimizer, machine and prior provenance.
+
+    Attributes:
+        config: the validated configuration.
+        optimizer: a fresh ask/tell optimizer.
+        machine: the machine (constructed last).
+        prior_info: :func:`prior_record` of the prior (``None`` without one).
+    """
+
+    config: RunConfig
+    optimizer: Any
+    machine: Any
+    prior_info: dict | None = None
+
+    @property
+    def method(self) -> str:
+        return self.config.method.name
+
+    def header(self) -> dict:
+        """Header entries of the run log: configuration (and its :func:`config_digest`),
+        prior provenance, knobs, bounds."""
+        dump = self.config.model_dump(mode="json")
+        return {
+            "knob_names": self.config.knob_names,
+            "method": self.method,
+            "bounds": self.config.bounds().tolist(),
+            "maximize": self.config.objective.maximize,
+            "config": dump,
+            "config_sha256": config_digest(dump),
+            "prior": self.prior_info,
+        }
+
+    def run(self, *, log=None, resume=None, progress: bool = False, callback=None):
+        r"""Run the loop with the configured safety options (ramped moves, read retries, floor,
+        restore, readback check); returns the evaluation table (see :func:`pigp_torch.optimize`).
+        """
+        from pigp_torch.loop import optimize
+
+        c = self.config
+        return optimize(
+            self.machine,
+            self.optimizer,
+            None,
+            c.budget,
+            method=self.method,
+            progress=progress,
+            callback=callback,
+            restore=c.restore,
+            moves="ramp",
+            max_step=c.machine_max_step(),
+            read_retries=c.read_retries,
+            retry_interval=c.retry_interval,
+            objective_floor=c.objective_floor,
+            log=log,
+            resume=resume,
+            readback_tol=c.readback_tolerance,
+            restore_attempts=c.restore_attempts,
+            restore_interval=c.restore_interval,
+        )
+
+
+def build_run(config: RunConfig) -> RunSetup:
+    r"""Build a run from a validated configuration: the prior's provenance, then the optimizer
+    (bad option values raise :class:`ConfigError` here), then — last — the machine.
+    """
+    info = prior_record(config)
+    optimizer = build_optimizer(config)
+    machine = build_machine(config)
+    return RunSetup(config=config, optimizer=optimizer, machine=machine, prior_info=info)
