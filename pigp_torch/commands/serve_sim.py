@@ -8,7 +8,7 @@ import sys
 def cmd_serve_sim(args) -> int:
     import torch
 
-    from pigp_torch.epics.ioc import serve, sim_ioc_from_args
+    from pigp_torch.testing.ioc import serve, sim_ioc_from_args
 
     torch.set_num_threads(1)
     print(f"building simulated ring (error seed {args.seed}, knobs {args.knobs})", flush=True)
@@ -26,7 +26,7 @@ def cmd_serve_sim(args) -> int:
 
 def register(sub, bench) -> None:
     """Add ``pigp serve-sim`` to the top-level sub-parsers ``sub`` (nothing under ``bench``)."""
-    from pigp_torch.epics import add_ioc_arguments
+    from pigp_torch.testing import add_ioc_arguments
 
     p = sub.add_parser(
         "serve-sim",

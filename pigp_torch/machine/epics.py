@@ -42,7 +42,7 @@ the loop answers by putting the initial knobs back.
 
 **Client library.** The CA calls go through caproto's threading client
 (``caproto.threading.client.Context``): pure Python, installable with pip on any platform, and the
-same package as the simulated IOC (:mod:`pigp_torch.epics.ioc`), so the whole EPICS path is
+same package as the simulated IOC (:mod:`pigp_torch.testing.ioc`), so the whole EPICS path is
 tested end to end over real Channel Access on the loopback interface. pyepics is the operators'
 usual client but needs the ``libca`` shared library and its environment; the CA calls are kept in
 the small adapter :class:`_CaprotoAdapter` (connect, read many, read with timestamp, control

@@ -1,7 +1,7 @@
 r"""Methods run through Xopt: stock Xopt UCB and Xopt UCB with the physics prior.
 
-Xopt is the optional extra ``xopt``: each builder imports :mod:`pigp_torch.xopt` when a run is
-built, so registering these methods does not need Xopt.
+Xopt is the optional extra ``xopt``: each builder imports :mod:`pigp_torch.integrations.xopt`
+when a run is built, so registering these methods does not need Xopt.
 
 Methods (registered in :data:`~pigp_torch.methods.METHODS`):
 
@@ -22,7 +22,7 @@ Methods (registered in :data:`~pigp_torch.methods.METHODS`):
   safety limit Xopt/Badger users set on a machine; ±0.15 of the range is our trust box of ±0.3 of
   the half-range, but Xopt centres it on the LAST point, not the best one).
 * ``xopt-pigp`` — Xopt's UCB generator with
-  :class:`~pigp_torch.xopt.PhysicsModelConstructor` (the physics prior's kernel, mean
+  :class:`~pigp_torch.integrations.xopt.PhysicsModelConstructor` (the physics prior's kernel, mean
   :math:`f_\infty` and noise, frozen), ``beta = 4`` (the authors' :math:`\mu + 2\sigma`) and
   ``max_travel_distances = 0.15``; otherwise Xopt defaults (same ``max_time = None``).
 """
@@ -81,7 +81,7 @@ def build_xopt_ucb(
     """
     from xopt.generators.bayesian import UpperConfidenceBoundGenerator
 
-    from pigp_torch.xopt import XoptOptimizer, vocs_from_bounds
+    from pigp_torch.integrations.xopt import XoptOptimizer, vocs_from_bounds
 
     vocs = vocs_from_bounds(ctx.machine.knob_names, ctx.bounds)
     kwargs = _generator_kwargs(ctx, beta, max_travel_distances, max_time, n_restarts)
@@ -100,7 +100,8 @@ def build_xopt_pigp(
     mean="f_inf",
     **generator_options,
 ):
-    r"""Xopt UCB with the physics-informed GP (:class:`~pigp_torch.xopt.PhysicsModelConstructor`).
+    r"""Xopt UCB with the physics-informed GP
+    (:class:`~pigp_torch.integrations.xopt.PhysicsModelConstructor`).
 
     Args:
         ctx: the run context (``ctx.prior`` gives kernel, mean and noise).
@@ -114,7 +115,11 @@ def build_xopt_pigp(
     """
     from xopt.generators.bayesian import UpperConfidenceBoundGenerator
 
-    from pigp_torch.xopt import PhysicsModelConstructor, XoptOptimizer, vocs_from_bounds
+    from pigp_torch.integrations.xopt import (
+        PhysicsModelConstructor,
+        XoptOptimizer,
+        vocs_from_bounds,
+    )
 
     vocs = vocs_from_bounds(ctx.machine.knob_names, ctx.bounds)
     kwargs = _generator_kwargs(ctx, beta, max_travel_distances, max_time, n_restarts)

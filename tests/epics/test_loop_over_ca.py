@@ -94,7 +94,7 @@ def test_slow_readback_raises_and_restores_setpoints(ioc, probe, ring):
 @pytest.mark.slow
 def test_ioc_killed_mid_run(ring):
     """The IOC dies after step 2: the loop raises MachineError; the completed rows are intact."""
-    from pigp_torch.epics.ioc import start_sim_ioc
+    from pigp_torch.testing.ioc import start_sim_ioc
 
     with start_sim_ioc(IOC_SEED, update_period=UPDATE_PERIOD) as handle:
         rows = []

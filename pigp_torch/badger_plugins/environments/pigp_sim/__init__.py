@@ -14,7 +14,7 @@ from typing import ClassVar
 
 from badger import environment
 
-from pigp_torch.badger import OBJECTIVE_PV, SIM_KNOBS, SIM_LIMIT_A
+from pigp_torch.integrations.badger import OBJECTIVE_PV, SIM_KNOBS, SIM_LIMIT_A
 
 
 class Environment(environment.Environment):

@@ -18,15 +18,15 @@ DRIVER = textwrap.dedent(
     import json, math, sys
     import torch
     from badger.settings import init_settings
-    import pigp_torch.badger as pb
+    import pigp_torch.integrations.badger as pb
 
     init_settings().write_value("BADGER_PLUGIN_ROOT", str(pb.plugin_root()))
     from badger.routine import Routine
     from badger.core import run_routine
     from xopt.generators import get_generator
-    from pigp_torch.epics.ioc import start_sim_ioc
+    from pigp_torch.testing.ioc import start_sim_ioc
     from pigp_torch.prior import PhysicsPrior
-    from pigp_torch.xopt_physics import PhysicsGenerator
+    from pigp_torch.integrations.xopt_physics import PhysicsGenerator
     from gest_api.vocs import VOCS
     import pandas as pd
 

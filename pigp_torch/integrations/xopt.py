@@ -67,7 +67,7 @@ try:
     from xopt.vocs import VOCS
 except ImportError as err:  # pragma: no cover - depends on the environment
     raise ImportError(
-        "pigp_torch.xopt needs Xopt; install the extra: pip install 'pigp-torch[xopt]'"
+        "pigp_torch.integrations.xopt needs Xopt; install the extra: pip install 'pigp-torch[xopt]'"
     ) from err
 
 from pigp_torch._utils import DTYPE, check_bounds

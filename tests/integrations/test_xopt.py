@@ -19,11 +19,7 @@ from xopt.numerical_optimizer import LBFGSOptimizer
 
 from pigp_torch import optimize
 from pigp_torch.benchmark import RunContext
-from pigp_torch.machine import SimulatedMachine
-from pigp_torch.methods import METHODS as XOPT_METHODS
-from pigp_torch.models import physics_informed_gp
-from pigp_torch.prior import PhysicsPrior
-from pigp_torch.xopt import (
+from pigp_torch.integrations.xopt import (
     PhysicsModelConstructor,
     XoptOptimizer,
     physics_vocs_gp,
@@ -31,6 +27,10 @@ from pigp_torch.xopt import (
     vocs_from_bounds,
     vocs_from_prior,
 )
+from pigp_torch.machine import SimulatedMachine
+from pigp_torch.methods import METHODS as XOPT_METHODS
+from pigp_torch.models import physics_informed_gp
+from pigp_torch.prior import PhysicsPrior
 
 DT = torch.float64
 D = 13

@@ -1,11 +1,12 @@
 r"""pigp-torch in Badger: the ``pigp_physics`` generator and the ``pigp_sim`` environment.
 
-Badger 1.x lists Xopt's generator registry, so importing :mod:`pigp_torch.xopt_physics` (done
-by :func:`plugin_root`) makes ``pigp_physics`` a Badger generator. The environment is a Badger
-plugin folder shipped with the package: ``plugin_root()/environments/pigp_sim`` (the simulated
-ring of ``pigp serve-sim`` over Channel Access). Point Badger at it with
-``BADGER_PLUGIN_ROOT=$(python -c "import pigp_torch.badger as b; print(b.plugin_root())")``, or
-copy the folder into your own plugin root (:func:`install_plugins`).
+Badger 1.x lists Xopt's generator registry, so importing
+:mod:`pigp_torch.integrations.xopt_physics` (done by :func:`plugin_root`) makes ``pigp_physics``
+a Badger generator. The environment is a Badger plugin folder shipped with the package:
+``plugin_root()/environments/pigp_sim`` (the simulated ring of ``pigp serve-sim`` over Channel
+Access). Point Badger at it with ``BADGER_PLUGIN_ROOT=$(python -c "import
+pigp_torch.integrations.badger as b; print(b.plugin_root())")``, or copy the folder into your own
+plugin root (:func:`install_plugins`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ OBJECTIVE_PV = "SPEAR:BeamLossRate"
 def plugin_root() -> Path:
     """The folder of pigp's Badger plugins (``environments/pigp_sim``); registers the
     ``pigp_physics`` generator with Xopt (and so with Badger)."""
-    import pigp_torch.xopt_physics  # noqa: F401  (registration)
+    import pigp_torch.integrations.xopt_physics  # noqa: F401  (registration)
 
     return Path(__file__).parent / "badger_plugins"
 

@@ -1,6 +1,6 @@
 r"""The simulated ring served over EPICS 7 pvAccess (a ``p4p`` server on 127.0.0.1).
 
-The pvAccess twin of :mod:`pigp_torch.epics.ioc`, for tests and demos of
+The pvAccess twin of :mod:`pigp_torch.testing.ioc`, for tests and demos of
 :class:`~pigp_torch.machine.pva.PvaMachine`: the same PV names, all ``NTScalar`` doubles (the
 switches too):
 
@@ -35,7 +35,8 @@ from collections.abc import Iterator
 import torch
 
 from pigp_torch._utils import DTYPE, check_bounds
-from pigp_torch.epics import (
+from pigp_torch.machine.base import check_setting
+from pigp_torch.testing import (
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     LOOPBACK,
@@ -44,15 +45,14 @@ from pigp_torch.epics import (
     READBACK_SUFFIX,
     SETPOINT_SUFFIX,
 )
-from pigp_torch.machine.base import check_setting
 
 REBOOT_SUFFIX = "Sim:Reboot"
 
 
 def free_udp_tcp_ports(n: int = 2, attempts: int = 50) -> list[int]:
-    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.epics.
+    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.testing.
     free_ports`)."""
-    from pigp_torch.epics import free_ports
+    from pigp_torch.testing import free_ports
 
     return free_ports(n, attempts)
 

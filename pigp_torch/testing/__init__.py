@@ -1,14 +1,15 @@
-r"""EPICS Channel Access tools: a simulated ring served as an IOC, for tests and demos.
+r"""Test servers: the simulated ring served over EPICS (Channel Access IOC, pvAccess server),
+for tests and demos (``pigp serve-sim``); no part of an online run.
 
-* :mod:`pigp_torch.epics.ioc` — a caproto IOC (``caproto.server``) that serves a
+* :mod:`pigp_torch.testing.ioc` — a caproto IOC (``caproto.server``) that serves a
   simulated ring (SPEAR3 by default, knobs in amps) with noise: per knob a setpoint PV
   ``<knob>:CurrSetpt`` and a readback ``<knob>:Curr1``, the loss rate ``<prefix>BeamLossRate``
-  and fault-injection switches; :func:`~pigp_torch.epics.ioc.start_sim_ioc` launches it in a
+  and fault-injection switches; :func:`~pigp_torch.testing.ioc.start_sim_ioc` launches it in a
   subprocess on the loopback interface for tests and demos.
 * The client side is :class:`pigp_torch.machine.epics.EpicsMachine`.
 
 This package imports nothing heavy (no caproto, no torch): the ``pigp`` command-line parser uses
-:func:`add_ioc_arguments` at start-up. Import :mod:`pigp_torch.epics.ioc` for the server itself.
+:func:`add_ioc_arguments` at start-up. Import :mod:`pigp_torch.testing.ioc` for the server itself.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ LOOPBACK = "127.0.0.1"
 
 
 def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Options of the simulated IOC (``pigp serve-sim`` and ``python -m pigp_torch.epics.ioc``)."""
+    """Options of the simulated IOC (``pigp serve-sim``, ``python -m pigp_torch.testing.ioc``)."""
     p.add_argument(
         "--seed", type=int, default=1, help="error seed of the simulated ring (default 1)"
     )

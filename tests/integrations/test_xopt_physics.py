@@ -16,9 +16,9 @@ from xopt import Xopt
 from xopt.evaluator import Evaluator
 
 from pigp_torch.benchmark import METHODS
+from pigp_torch.integrations.xopt import vocs_from_prior
+from pigp_torch.integrations.xopt_physics import PhysicsGenerator
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.xopt import vocs_from_prior
-from pigp_torch.xopt_physics import PhysicsGenerator
 
 DT = torch.float64
 D = 4

@@ -63,7 +63,8 @@ from caproto import ChannelType
 from caproto.server import PVGroup, pvproperty
 
 from pigp_torch._utils import DTYPE, check_bounds
-from pigp_torch.epics import (
+from pigp_torch.machine.base import check_setting
+from pigp_torch.testing import (
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     LOOPBACK,
@@ -76,7 +77,6 @@ from pigp_torch.epics import (
     add_ioc_arguments,
     free_ports,
 )
-from pigp_torch.machine.base import check_setting
 
 #: Printed by the IOC once its sockets are bound; :func:`start_sim_ioc` waits for it.
 READY_MESSAGE = "pigp sim IOC ready"
@@ -468,7 +468,7 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
 
 
 def sim_ioc_from_args(args):
-    """The IOC described by the options of :func:`pigp_torch.epics.add_ioc_arguments`."""
+    """The IOC described by the options of :func:`pigp_torch.testing.add_ioc_arguments`."""
     from pigp_torch.ringargs import ring_spec_from_args
 
     return make_sim_ioc(
@@ -483,12 +483,12 @@ def sim_ioc_from_args(args):
 
 
 def main(argv=None) -> int:
-    """``python -m pigp_torch.epics.ioc``: serve the simulated ring (options as ``serve-sim``)."""
+    """``python -m pigp_torch.testing.ioc``: serve the simulated ring (options as ``serve-sim``)."""
     import argparse
 
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(
-        prog="python -m pigp_torch.epics.ioc",
+        prog="python -m pigp_torch.testing.ioc",
         description="Serve a simulated ring (SPEAR3 by default) over EPICS Channel Access on "
         "127.0.0.1.",
     )
@@ -626,7 +626,7 @@ def start_sim_ioc(
 ) -> Iterator[SimIOCProcess]:
     r"""Run the simulated IOC in a subprocess on 127.0.0.1 for the ``with`` block.
 
-    Launches ``python -m pigp_torch.epics.ioc`` with the server bound to the loopback interface
+    Launches ``python -m pigp_torch.testing.ioc`` with the server bound to the loopback interface
     and ``port`` (default: a free one, so parallel runs do not collide), waits (at most
     ``startup_timeout`` s) for its ready line and for its PVs to answer over CA, and stops it
     (SIGTERM, then SIGKILL) when the block ends, also on errors.
@@ -647,7 +647,7 @@ def start_sim_ioc(
 
     names = knob_names_for(knobs)
     port = free_port() if port is None else int(port)
-    cmd = [sys.executable, "-m", "pigp_torch.epics.ioc", "--seed", str(int(seed))]
+    cmd = [sys.executable, "-m", "pigp_torch.testing.ioc", "--seed", str(int(seed))]
     cmd += ["--knobs", knobs if isinstance(knobs, str) else ",".join(names)]
     cmd += ["--noise", repr(float(noise)), "--noise-seed", str(int(noise_seed))]
     cmd += ["--prefix", prefix, "--port", str(port)]

@@ -37,14 +37,20 @@ try:
     from xopt.generators import generators as _XOPT_REGISTRY
 except ImportError as err:  # pragma: no cover - depends on the environment
     raise ImportError(
-        "pigp_torch.xopt_physics needs Xopt; install the extra: pip install 'pigp-torch[xopt]'"
+        "pigp_torch.integrations.xopt_physics needs Xopt; install the extra: "
+        "pip install 'pigp-torch[xopt]'"
     ) from err
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.integrations.xopt import (
+    XOPT_ERROR,
+    _continuous_bounds,
+    _single_objective,
+    prior_as_dict,
+)
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.runlog import ReplayError, replay
-from pigp_torch.xopt import XOPT_ERROR, _continuous_bounds, _single_objective, prior_as_dict
 
 __all__ = ["PhysicsGenerator"]
 
