@@ -9,12 +9,7 @@ multi-threaded OpenBLAS on a busy machine, set ``OPENBLAS_NUM_THREADS=1`` before
 (the ``pigp`` command and the test suite do) — it is up to 10x faster.
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("pigp-torch")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-    __version__ = "0.0.0+unknown"
+from pigp_torch._version import __version__
 
 __all__ = ["__version__", "optimize"]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+from datetime import datetime, timezone
 
 import torch
 
@@ -101,3 +102,8 @@ def max_step_tensor(max_step, bounds: torch.Tensor) -> torch.Tensor | None:
     if not torch.isfinite(m).all() or (m <= 0).any():
         raise ValueError("max_step entries must be positive and finite")
     return m
+
+
+def utc_now() -> str:
+    """The current UTC time, ISO 8601 with microseconds."""
+    return datetime.now(timezone.utc).isoformat(timespec="microseconds")

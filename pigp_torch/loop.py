@@ -84,10 +84,10 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
+from pigp_torch._utils import utc_now as _utc_now
 from pigp_torch.machine.base import Machine, check_setting, max_step_tensor
 from pigp_torch.machine.errors import MachineError, ReadError
 from pigp_torch.runlog import RunLog, RunRecords, evaluation_rows, replay
-from pigp_torch.runlog import utc_now as _utc_now
 
 RESTORE_MODES = ("initial", "best", "none")
 MOVE_MODES = ("set", "ramp")

@@ -192,7 +192,7 @@ def _user() -> str:
 
 
 def _now() -> str:
-    from pigp_torch.runlog import utc_now
+    from pigp_torch._utils import utc_now  # lazily: _utils imports torch
 
     return utc_now()
 

@@ -49,13 +49,12 @@ import os
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from pigp_torch._utils import DTYPE
+from pigp_torch._utils import DTYPE, utc_now
 
 #: Tag of the header record, checked on read.
 FORMAT_TAG = "pigp_torch.RunLog"
@@ -70,11 +69,6 @@ class ReplayError(ValueError):
     """Replaying a run log did not reproduce the logged run (other config, prior or seed)."""
 
 
-def utc_now() -> str:
-    """The current UTC time, ISO 8601 with microseconds."""
-    return datetime.now(timezone.utc).isoformat(timespec="microseconds")
-
-
 def file_sha256(path: str | Path) -> str:
     """Hex sha256 of a file's bytes (read in 1 MiB chunks)."""
     h = hashlib.sha256()
@@ -85,7 +79,7 @@ def file_sha256(path: str | Path) -> str:
 
 
 def _package_version() -> str:
-    from pigp_torch import __version__
+    from pigp_torch._version import __version__
 
     return __version__
 

@@ -1,0 +1,173 @@
+"""The import graph of the package, computed from the source, follows the layers.
+
+Every import of a ``pigp_torch`` module is counted, at module level and inside functions (a
+lazy import is still a dependency). A *unit* is a top-level module or subpackage of
+``pigp_torch``; a unit may import only units of a LOWER layer (so two units of one layer do not
+import each other), no module imports the package root, every unit has a layer, and within a
+unit the modules import each other without a cycle.
+
+=====  =========================================================================================
+layer  units
+=====  =========================================================================================
+10     ``cli``, ``commands``, ``badger_plugins`` (entry points), the package root (a lazy facade)
+9      ``benchmark``, ``report``, ``dashboard``, ``demo_cache`` (studies, figures, pages)
+8      ``run`` (a run of ``pigp optimize``: validated, built, resumed)
+7      ``loop`` (the optimization loop), ``testing`` (the simulated ring as EPICS servers)
+6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines),
+       ``ringargs`` (rings from command-line arguments)
+5      ``integrations`` (Xopt and Badger glue)
+4      ``optimizers`` (ask/tell)
+3      ``models`` (GP builders)
+2      ``kernels``, ``prior``, ``surrogate``, ``simulation``, ``runlog``
+1      ``_multistart``, ``config`` (run-file schema), ``dataset``, ``progress``, ``runlock``
+0      ``_utils``, ``_version``
+=====  =========================================================================================
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "pigp_torch"
+ROOT = "<root>"
+
+LAYERS: dict[str, int] = {
+    **dict.fromkeys(("cli", "commands", "badger_plugins", ROOT), 10),
+    **dict.fromkeys(("benchmark", "report", "dashboard", "demo_cache"), 9),
+    "run": 8,
+    **dict.fromkeys(("loop", "testing"), 7),
+    **dict.fromkeys(("methods", "machine", "ringargs"), 6),
+    "integrations": 5,
+    "optimizers": 4,
+    "models": 3,
+    **dict.fromkeys(("kernels", "prior", "surrogate", "simulation", "runlog"), 2),
+    **dict.fromkeys(("_multistart", "config", "dataset", "progress", "runlock"), 1),
+    **dict.fromkeys(("_utils", "_version"), 0),
+}
+
+
+def _module_name(path: Path) -> str:
+    parts = ("pigp_torch", *path.relative_to(PACKAGE).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def _imports(path: Path, name: str, known: set[str]) -> set[str]:
+    """``pigp_torch`` modules imported anywhere in the file (``from a import b`` counts as
+    ``a.b`` when that is a module)."""
+    is_package = path.name == "__init__.py"
+    package = name if is_package else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join([*base, *([node.module] if node.module else [])])
+            else:
+                module = node.module or ""
+            targets = [f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in known]
+            targets = targets or [module]
+        else:
+            continue
+        found |= {t for t in targets if t == "pigp_torch" or t.startswith("pigp_torch.")}
+    return found
+
+
+def _unit(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ROOT
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    known = set(modules)
+    return {name: _imports(path, name, known) for name, path in modules.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_every_unit_has_a_layer():
+    units = {_unit(m) for m in _modules()}
+    assert units - set(LAYERS) == set(), "add the new unit to LAYERS (and the docstring)"
+    assert set(LAYERS) - units == set(), "a unit in LAYERS no longer exists"
+
+
+def test_units_import_only_lower_layers_and_never_the_root():
+    bad = []
+    for module, targets in _graph().items():
+        for target in targets:
+            a, b = _unit(module), _unit(target)
+            if target == "pigp_torch" and module != "pigp_torch":
+                bad.append(f"{module} imports the package root")
+            elif a != b and LAYERS[b] >= LAYERS[a]:
+                bad.append(f"{module} (layer {LAYERS[a]}) imports {target} (layer {LAYERS[b]})")
+    assert bad == []
+
+
+def test_no_import_cycle_between_modules():
+    assert _cycles(_graph()) == []
+
+
+@pytest.mark.parametrize(
+    ("source", "expected"),
+    [
+        ("from pigp_torch.loop import optimize\n", {"pigp_torch.loop"}),
+        ("def f():\n    import pigp_torch.models.ml2\n", {"pigp_torch.models.ml2"}),
+        ("from . import registry\n", {"pigp_torch.methods.registry"}),
+        ("from pigp_torch import _utils\n", {"pigp_torch._utils"}),
+        ("from pigp_torch import optimize\n", {"pigp_torch"}),
+    ],
+)
+def test_the_import_finder_sees_every_form(tmp_path, source, expected):
+    """Module-level, function-level, relative and package-member imports are all found (a
+    finder that missed one would let an upward import through)."""
+    path = tmp_path / "gp.py"
+    path.write_text(source)
+    known = set(_modules())
+    assert _imports(path, "pigp_torch.methods.gp", known) == expected
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(graph) == [["a", "b", "c"]]
