@@ -85,3 +85,15 @@ def ring_spec_from_args(args):
     if isinstance(knobs, str) and knobs not in ("paper13", "powered14", "all72"):
         knobs = (knobs,)
     return RingSpec(optics=args.optics, knobs=knobs, knob_limit=args.knob_limit)
+
+
+def add_machine_arguments(p: argparse.ArgumentParser, seed_help: str) -> None:
+    """Add ``--seed`` (the ring's error seed, help ``seed_help``) and the ring options."""
+    p.add_argument("--seed", type=int, default=1, help=seed_help)
+    add_ring_arguments(p)
+
+
+def simulator_from_args(args):
+    """The simulated ring of :func:`add_machine_arguments`'s options (built, error seed
+    ``args.seed``)."""
+    return ring_spec_from_args(args).build(args.seed)

@@ -9,8 +9,9 @@ unit the modules import each other without a cycle.
 =====  =========================================================================================
 layer  units
 =====  =========================================================================================
-10     ``cli``, ``commands``, ``badger_plugins`` (entry points), the package root (a lazy facade)
-9      ``benchmark``, ``report``, ``dashboard``, ``demo_cache`` (studies, figures, pages)
+11     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
+10     ``commands`` (one module per ``pigp`` command), ``badger_plugins`` (Badger's entry point)
+9      ``benchmark`` (the protocol and the demo), ``report``, ``dashboard`` (figures, pages)
 8      ``run`` (a run of ``pigp optimize``: validated, built, resumed)
 7      ``loop`` (the optimization loop), ``testing`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines),
@@ -35,8 +36,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pigp_torch"
 ROOT = "<root>"
 
 LAYERS: dict[str, int] = {
-    **dict.fromkeys(("cli", "commands", "badger_plugins", ROOT), 10),
-    **dict.fromkeys(("benchmark", "report", "dashboard", "demo_cache"), 9),
+    **dict.fromkeys(("cli", ROOT), 11),
+    **dict.fromkeys(("commands", "badger_plugins"), 10),
+    **dict.fromkeys(("benchmark", "report", "dashboard"), 9),
     "run": 8,
     **dict.fromkeys(("loop", "testing"), 7),
     **dict.fromkeys(("methods", "machine", "ringargs"), 6),

@@ -15,6 +15,7 @@ error seeds); :func:`center_covariance` the optima's second moment about the nom
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import NamedTuple
 
@@ -241,3 +242,42 @@ def center_covariance(X: torch.Tensor) -> torch.Tensor:
             f"ensemble of more than {X.shape[1]} rings"
         )
     return C
+
+
+def with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None, *, progress=False):
+    r"""``prior`` with ``center_cov`` and ``peak_shape`` from the optima of ``size`` simulated
+    rings (error seeds :func:`ensemble_seeds`) of the data's ring.
+
+    Args:
+        prior: a :class:`~pigp_torch.prior.PhysicsPrior` (a dataclass; a copy is returned with
+            the two fields and ``provenance["center_ensemble_seeds"]``).
+        size: number of ensemble rings.
+        data_meta: the surrogate's data metadata: ``ring`` (a
+            :class:`~pigp_torch.simulation.spec.RingSpec` record; without one, the SPEAR3 ring
+            with the prior's knobs) and ``error_seed`` (the model ring's).
+        machine_seed: error seed of the machine under test, if known.
+        progress: print a line and show a progress bar.
+
+    Raises:
+        ValueError: the model ring or the machine is among the ensemble seeds, or the data's
+            ring has other knobs than the prior.
+    """
+    from pigp_torch.simulation.spec import RingSpec, as_ring_spec
+
+    if data_meta.get("ring"):
+        spec = RingSpec.from_dict(data_meta["ring"])
+    else:  # data written without a ring record: the SPEAR3 ring with the prior's knobs
+        spec = as_ring_spec(None, knobs=tuple(prior.knob_names))
+    seeds = ensemble_seeds(size)
+    for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
+        if seed in seeds:
+            raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
+                             f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
+    if progress:
+        print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})", flush=True)
+    model = spec.build(data_meta.get("error_seed", seeds[0]))
+    if list(model.knob_names) != list(prior.knob_names):
+        raise ValueError("the data's ring has other knobs than the prior")
+    optima = ensemble_optima(seeds, model=model, progress=progress)
+    provenance = {**prior.provenance, "center_ensemble_seeds": optima.seed_range}
+    return dataclasses.replace(prior, **optima.prior_fields(), provenance=provenance)

@@ -8,8 +8,8 @@ import inspect
 import pytest
 import torch
 
-from pigp_torch.cli import add_train_arguments
 from pigp_torch.cli import main as pigp
+from pigp_torch.commands.train_surrogate import add_train_arguments
 from pigp_torch.dataset import Dataset
 from pigp_torch.surrogate import load_surrogate, train_surrogate
 

@@ -46,7 +46,7 @@ def code_digest() -> str:
     the torch and numpy versions."""
     import numpy
 
-    root = Path(__file__).parent
+    root = Path(__file__).parents[1]  # the package folder
     h = hashlib.sha256(f"torch {torch.__version__} numpy {numpy.__version__}".encode())
     for part in _SOURCES:
         path = root / part

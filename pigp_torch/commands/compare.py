@@ -1,0 +1,132 @@
+"""``pigp compare``: benchmark optimizers on simulated machines (the spear3-13 protocol)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pigp_torch.ringargs import add_ring_arguments
+
+
+def seed_list(text: str) -> list[int]:
+    """``"1-12"`` or ``"1,3,5"`` or ``"1-4,9"`` -> list of ints."""
+    seeds = []
+    for part in text.split(","):
+        if "-" in part:
+            a, b = (int(v) for v in part.split("-"))
+            seeds.extend(range(a, b + 1))
+        elif part.strip():
+            seeds.append(int(part))
+    return seeds
+
+
+def write_comparison(df, out: Path, title: str) -> None:
+    from pigp_torch.benchmark import plot_prior_mean, plot_runs, summarize
+
+    out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out / "runs.csv", index=False)
+    summary = summarize(df)
+    summary.to_csv(out / "summary.csv")
+    plot_runs(df, out / "fig2b_runs.png", title=title)
+    files = ["runs.csv", "summary.csv", "fig2b_runs.png"]
+    if {"pigp", "pigp-zero-mean"} <= set(df["method"]):
+        plot_prior_mean(df, out / "fig2c_prior_mean.png")
+        files.append("fig2c_prior_mean.png")
+    with_pd_options = summary.to_string(float_format=lambda v: f"{v:.3g}")
+    print(with_pd_options)
+    print(f"wrote {', '.join(files)} to {out}")
+
+
+def cmd_compare(args) -> int:
+    from pigp_torch.benchmark import run_benchmark
+    from pigp_torch.ringargs import ring_spec_from_args
+
+    ring = ring_spec_from_args(args)
+    df = run_benchmark(
+        args.methods,
+        seed_list(args.seeds),
+        model_seed=args.model_seed,
+        budgets={"gp": args.budget_gp, "direct": args.budget_direct},
+        n_workers=args.workers,
+        progress=True,
+        ring=ring,
+        scheduler=args.scheduler,
+        center_ensemble=args.center_ensemble,
+        machine_maps=not args.model_maps,
+        prior_source=args.prior_source,
+    )
+    n_knobs = ring.build(args.model_seed).dim  # cached: the model ring was built already
+    name = "spear3" if ring.is_spear3 else Path(ring.lattice).stem
+    title = f"{name}-{n_knobs}, model seed {args.model_seed}"
+    write_comparison(df, args.out, title)
+    return 0
+
+
+def register(sub, bench) -> None:
+    """Add ``pigp compare`` to the top-level sub-parsers ``sub``."""
+    p = sub.add_parser(
+        "compare",
+        help="benchmark optimizers on simulated machines (spear3-13 protocol)",
+        description="Run methods x machine error seeds from skews zero with 0.04 mA/min noise, "
+        "the physics prior computed from a different model ring; score every evaluation on the "
+        "noise-free loss rate; write runs.csv, summary.csv and Fig. 2b/2c-style figures.",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=[
+            "pigp-physics",
+            "pigp",
+            "pigp-zero-mean",
+            "ml2",
+            "xopt-ucb",
+            "xopt-ucb-travel",
+            "nelder-mead",
+            "rcds",
+        ],
+        help="method names (default: pigp-physics pigp pigp-zero-mean ml2 xopt-ucb "
+        "xopt-ucb-travel nelder-mead rcds; the xopt ones need Xopt installed)",
+    )
+    p.add_argument("--seeds", default="1-24", help="machine error seeds, e.g. 1-24 or 1,3,5")
+    p.add_argument(
+        "--prior-source",
+        default="surrogate",
+        choices=["surrogate", "exact"],
+        help="surrogate (default: the paper's chain, simulated data of the model ring -> "
+        "3-network surrogate -> autograd Hessian; minutes) or exact (the model ring's own "
+        "differentiable loss rate)",
+    )
+    p.add_argument(
+        "--model-maps",
+        action="store_true",
+        help="give every machine the model's loss-rate constants (default: each machine its "
+        "own background and Touschek scale, drawn from its seed)",
+    )
+    p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
+    p.add_argument("--budget-gp", type=int, default=100, help="evaluations for GP methods")
+    p.add_argument("--budget-direct", type=int, default=300, help="for Nelder-Mead and RCDS")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="parallel processes here (with --scheduler local: Dask worker processes)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the methods x seeds grid on a Dask cluster, one task per run: a scheduler "
+        "address (tcp://host:8786) or 'local' (a LocalCluster of --workers processes on "
+        "127.0.0.1); same numbers as a local run (default: local processes, no Dask)",
+    )
+    add_ring_arguments(p)
+    p.add_argument(
+        "--center-ensemble",
+        type=int,
+        default=40,
+        metavar="N",
+        help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
+        "where the machine's optimum lies and the mean shape of the peak (~3-7 s a ring; 0: "
+        "box prior and the model ring's shape; default 40)",
+    )
+    p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
+    p.set_defaults(func=cmd_compare)
