@@ -173,23 +173,33 @@ class RunSetup:
         """
         from pigp_torch.loop import optimize
 
-        c = self.config
         return optimize(
             self.machine,
             self.optimizer,
             None,
-            c.budget,
+            self.config.budget,
             method=self.method,
             progress=progress,
             callback=callback,
+            log=log,
+            resume=resume,
+            options=self.options(),
+        )
+
+    def options(self):
+        r"""The loop's safety options of this run (:class:`~pigp_torch.loop.RunOptions`): every
+        proposal ramped to, the configured restore, read retries, floor and readback check. The
+        step limit is the machine's own (:func:`build_machine` gives it ``max_step``; the loop
+        reads it from there), so it is not repeated here."""
+        from pigp_torch.loop import RunOptions
+
+        c = self.config
+        return RunOptions(
             restore=c.restore,
             moves="ramp",
-            max_step=c.machine_max_step(),
             read_retries=c.read_retries,
             retry_interval=c.retry_interval,
             objective_floor=c.objective_floor,
-            log=log,
-            resume=resume,
             readback_tol=c.readback_tolerance,
             restore_attempts=c.restore_attempts,
             restore_interval=c.restore_interval,

@@ -1,0 +1,90 @@
+r"""The optimization loop: measure the start point, then ask -> evaluate -> tell until the budget.
+
+:func:`optimize` (:mod:`~pigp_torch.loop.core`) with its safety options
+(:class:`~pigp_torch.loop.options.RunOptions`); the machine boundary is
+:mod:`~pigp_torch.loop.moves`, the signals and exceptions :mod:`~pigp_torch.loop.signals`.
+
+The loop is the only place that talks to both an optimizer and a machine; it records every
+evaluation in a tidy table (and, optionally, in a :class:`~pigp_torch.runlog.RunLog` on disk) and,
+on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
+
+**Safety rules on a machine** (any :class:`~pigp_torch.machine.base.Machine`, not only EPICS):
+
+1. *Bounds and step limit at the machine boundary.* Every setting the loop sends passes
+   :func:`~pigp_torch.machine.base.check_setting` against the machine's ``bounds`` and the step
+   limit :math:`m` (the elementwise minimum of the machine's ``max_step`` and the loop's
+   ``max_step``), measured from the previous setting sent, *before* ``machine.set`` is called —
+   on top of whatever the machine itself checks and of the optimizer's own rules (BayesOpt's trust
+   box). A setting that breaks a rule is refused with ``ValueError`` and the run ends as below.
+2. *How a proposal is reached* (``moves``). The start point, the first point after a resume and
+   every restore are always reached by a ramp: the move :math:`\Delta` is cut into
+   :math:`n = \lceil \max_i |\Delta_i| / (0.99\, m_i) \rceil` equal steps on the segment (all
+   inside the convex box; the 1 % margin leaves room for a machine that measures the step from
+   readbacks sitting within their tolerance of the setpoints). With ``moves="ramp"`` every
+   proposal is reached the same way and the objective is read once, after the last step; the
+   optimizer's algorithm is untouched, so Nelder–Mead and RCDS, which have no step limit of their
+   own, respect the machine's limit, and BayesOpt keeps its trust box (which bounds the distance
+   from the best point, not from the last one). With ``moves="set"`` (the default, for
+   compatibility) a proposal is one ``set``, refused if it is too far. ``pigp optimize`` ramps.
+3. *Invalid readings.* A reading that is NaN or infinite, or a read that raises
+   :class:`~pigp_torch.machine.errors.ReadError` or ``TimeoutError``, is retried up to
+   ``read_retries`` times, ``retry_interval`` seconds apart; then the run aborts with
+   ``ReadError``. (Give a machine that retries on its own, like ``EpicsMachine``, zero retries
+   of its own, or the two counts multiply.)
+   *Readings checked against the machine's state* (``check_readings``, default on): the knob
+   readbacks (``get()``) must lie within the readback tolerance of the setting before *and*
+   after each reading (the machine's ``tolerance`` when it has one, else ``readback_tol`` of
+   each range); a machine with ``setpoints()`` must show the same setpoints after the reading as
+   before, and one with a ``disconnections`` counter must not have lost a connection during it.
+   A reading that fails a check is discarded (a ``discarded`` record in the log, with the
+   reason and the value) and taken again if the knobs are (still) at the setting, within the
+   same ``read_retries``; if the knobs are no longer at the setting (an IOC reboot, another
+   client) the run aborts with :class:`~pigp_torch.machine.errors.MachineError`. Freshness of
+   the objective (timestamps that must advance) is the machine's check (``EpicsMachine``
+   raises a ``StaleReadingError``, a ``ReadError``); what the machine reports about a reading
+   (``last_reading``) is stored with the evaluation.
+4. *Objective floor.* With ``objective_floor`` set, a valid reading below it is recorded, then the
+   run aborts with :class:`RunAborted` (the beam may be gone or being lost).
+5. *Restore.* The initial knobs — those found at the start (``get()``), or on a resume those
+   logged by the run's *first* start — are put back, by a ramp, when the run ends with any
+   exception (a machine error, a refused setting, a bug, ``KeyboardInterrupt`` — Ctrl-C — SIGTERM
+   or SIGHUP), and at the end of a completed run unless ``restore="best"`` (the best observed
+   point is set) or ``restore="none"``. The target is verified by readback: ``get()`` must be
+   within ``readback_tol`` of it. A failed attempt is retried, ``restore_attempts`` in all,
+   ``restore_interval`` seconds apart (each attempt ramps from where the knobs then are); the
+   end record says whether the knobs were restored and holds the last setpoint written
+   (``last_setpoint``). While restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one
+   abandons the restore).
+6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
+   dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
+   restore, then re-raise; a SIGHUP that was ignored when the run started (``nohup``) stays
+   ignored. The handlers are installed only in the main thread and the previous ones are always
+   put back.
+7. *Intent records.* With a log, every ``set`` the loop sends is preceded by an ``intent``
+   record (the setting about to be written, the purpose, the step), written and fsynced before
+   the write: after a crash (SIGKILL, power cut) the log holds the last commanded setting.
+
+**Run log and resume.** With ``log`` every evaluation is appended (and fsynced) before the next
+step, framed by a ``start`` and an ``end`` record (status, reason, where the knobs were put
+back and their readback); see :mod:`pigp_torch.runlog`. ``resume=`` continues a logged run: the
+optimizer is rebuilt with :func:`~pigp_torch.runlog.replay` and the run goes on at the next step
+until ``budget`` evaluations in all; the knobs are restored to the initial knobs of the logged
+run's first start (not to where a crash left them), and the new start record notes where the
+knobs were found (``found_knobs``).
+"""
+
+from pigp_torch.loop.core import optimize
+from pigp_torch.loop.moves import RAMP_FRACTION, effective_max_step
+from pigp_torch.loop.options import MOVE_MODES, RESTORE_MODES, RunOptions
+from pigp_torch.loop.signals import RunAborted, Terminated
+
+__all__ = [
+    "MOVE_MODES",
+    "RAMP_FRACTION",
+    "RESTORE_MODES",
+    "RunAborted",
+    "RunOptions",
+    "Terminated",
+    "effective_max_step",
+    "optimize",
+]

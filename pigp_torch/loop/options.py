@@ -1,0 +1,79 @@
+r"""The safety options of a run (:class:`RunOptions`), checked once when they are made."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+RESTORE_MODES = ("initial", "best", "none")
+MOVE_MODES = ("set", "ramp")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    r"""How :func:`~pigp_torch.loop.optimize` treats a machine: the safety rules of
+    :mod:`pigp_torch.loop` (defaults: the safe choices, except ``moves="set"`` for compatibility;
+    ``pigp optimize`` ramps).
+
+    Attributes:
+        restore: ``"initial"`` (default), ``"best"`` or ``"none"``: where the knobs go at the end
+            of a completed run (after a failure always to the initial knobs, unless ``"none"``).
+        moves: ``"set"`` (one ``set`` per proposal) or ``"ramp"`` (ramp to every proposal).
+        max_step: a step limit of the loop on top of the machine's ``max_step`` (scalar fraction
+            of each knob's half-range or ``d`` absolute, see
+            :func:`~pigp_torch._utils.max_step_tensor`), or ``None``.
+        read_retries: extra read attempts after an invalid reading (>= 0; default 2).
+        retry_interval: seconds to wait before each extra attempt (>= 0; default 0).
+        objective_floor: abort when a reading falls below this value (``None``: no floor).
+        handle_signals: turn SIGTERM and SIGHUP into :class:`~pigp_torch.loop.Terminated` during
+            the run, and defer SIGINT/SIGTERM/SIGHUP while restoring (main thread only).
+        readback_tol: allowed ``|get() - target|`` after a restore, a fraction of each knob's
+            range (and around a reading, for a machine without a ``tolerance`` of its own;
+            default 1e-3).
+        restore_attempts: attempts at the restore (ramp and readback check, >= 1; default 3).
+        restore_interval: seconds between those attempts (>= 0; default 1).
+        check_readings: check every reading of a machine against its state (rule 3).
+
+    Raises:
+        ValueError: a value out of its range (at construction).
+    """
+
+    restore: str = "initial"
+    moves: str = "set"
+    max_step: object = None
+    read_retries: int = 2
+    retry_interval: float = 0.0
+    objective_floor: float | None = None
+    handle_signals: bool = True
+    readback_tol: float = 1e-3
+    restore_attempts: int = 3
+    restore_interval: float = 1.0
+    check_readings: bool = True
+
+    def __post_init__(self) -> None:
+        if self.restore not in RESTORE_MODES:
+            raise ValueError(f"restore must be one of {RESTORE_MODES}, got {self.restore!r}")
+        if self.moves not in MOVE_MODES:
+            raise ValueError(f"moves must be one of {MOVE_MODES}, got {self.moves!r}")
+        if int(self.read_retries) != self.read_retries or self.read_retries < 0:
+            raise ValueError(f"read_retries must be an integer >= 0, got {self.read_retries}")
+        _finite_nonnegative("retry_interval", self.retry_interval)
+        floor = self.objective_floor
+        if floor is not None and not math.isfinite(float(floor)):
+            raise ValueError(f"objective_floor must be finite or None, got {floor}")
+        _finite_nonnegative("readback_tol", self.readback_tol)
+        if int(self.restore_attempts) != self.restore_attempts or self.restore_attempts < 1:
+            raise ValueError(
+                f"restore_attempts must be an integer >= 1, got {self.restore_attempts}"
+            )
+        _finite_nonnegative("restore_interval", self.restore_interval)
+        object.__setattr__(self, "read_retries", int(self.read_retries))
+        object.__setattr__(self, "retry_interval", float(self.retry_interval))
+        object.__setattr__(self, "readback_tol", float(self.readback_tol))
+        object.__setattr__(self, "restore_attempts", int(self.restore_attempts))
+        object.__setattr__(self, "restore_interval", float(self.restore_interval))
+
+
+def _finite_nonnegative(name: str, value) -> None:
+    if not (0.0 <= float(value) < float("inf")):
+        raise ValueError(f"{name} must be finite and >= 0, got {value}")
