@@ -1,0 +1,71 @@
+r"""The run log: every evaluation of an online run, on disk before the next step, and its replay.
+
+A run log is a JSON-lines file (one JSON object per line), append-only. Record types:
+
+* ``header`` (first line, once): ``format``/``version`` tags, ``package_version``,
+  ``created`` (UTC, ISO 8601), ``knob_names`` and whatever the writer adds — the command
+  ``pigp optimize`` stores the validated configuration and the prior's provenance (file path,
+  sha256 of its bytes, its ``provenance`` metadata).
+* ``start`` (one per session: the first run and each resume): ``time``, ``initial_knobs`` (the
+  knobs found on the machine, where they are put back), ``budget``, ``first_step``.
+* ``intent`` (one before every ``set`` the loop sends, fsynced before the write): ``x`` (the
+  setting about to be written), ``purpose`` (``"evaluation"`` or ``"restore initial"`` /
+  ``"restore best"``), ``step`` (the evaluation it serves, ``null`` for a restore), ``part`` /
+  ``parts`` (its place in a ramp). After a crash the last one is the last commanded setting.
+* ``discarded`` (a reading thrown away because the machine's state changed during it): ``step``,
+  ``y``, ``reason``, ``time``.
+* ``evaluation`` (one per measurement): ``step`` (0, 1, ...), ``x`` (knob values in
+  ``knob_names`` order), ``y``, ``reads`` (read attempts it took), ``t_set`` / ``t_read`` (UNIX
+  times before the move and after the reading), ``ask_time_s`` and ``eval_time_s``, and
+  ``reading`` (what the machine reports about the reading, e.g. the objective PV's timestamps).
+* ``end`` (one per session that ended in Python): ``status`` (``"completed"``,
+  ``"interrupted"``, ``"aborted"`` or ``"failed"``), ``reason``, ``restored_to``,
+  ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations`` and, on a machine,
+  ``restored`` (whether the knobs were put back), ``last_setpoint`` (the last setting written)
+  and ``restore_attempts``.
+
+While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.runlock.log_lock`,
+``<log>.lock``): a second writer is refused with :class:`~pigp_torch.runlock.LockHeld`.
+
+Each record is written with one ``write``, then ``flush`` and ``os.fsync``: a crash (even a
+power cut after the call returned) loses no completed evaluation. A last line cut short by a crash
+during a write is ignored when reading (with a warning) and cut off before appending.
+
+Why JSON lines and not CSV/Parquet: records of different types share one file, a reader needs
+nothing but ``json``, appending never rewrites earlier bytes, and floats round-trip exactly
+(``json`` writes ``repr(float)``).
+
+:func:`replay` rebuilds an optimizer from the logged evaluations by re-running its asks; every
+optimizer of the package is deterministic given its seed and the data told, so the rebuilt state is
+the state the run had.
+"""
+
+from pigp_torch._utils import utc_now
+from pigp_torch.runlog.format import (
+    END_STATUSES,
+    FORMAT_TAG,
+    FORMAT_VERSION,
+    READABLE_VERSIONS,
+    RECORD_TYPES,
+    ReplayError,
+    file_sha256,
+)
+from pigp_torch.runlog.reader import RunRecords, read_log
+from pigp_torch.runlog.replay import evaluation_rows, replay
+from pigp_torch.runlog.writer import RunLog
+
+__all__ = [
+    "END_STATUSES",
+    "FORMAT_TAG",
+    "FORMAT_VERSION",
+    "READABLE_VERSIONS",
+    "RECORD_TYPES",
+    "ReplayError",
+    "RunLog",
+    "RunRecords",
+    "evaluation_rows",
+    "file_sha256",
+    "read_log",
+    "replay",
+    "utc_now",
+]
