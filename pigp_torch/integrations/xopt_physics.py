@@ -42,11 +42,11 @@ except ImportError as err:  # pragma: no cover - depends on the environment
     ) from err
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.integrations.xopt import (
+from pigp_torch.integrations.xopt_vocs import (
     XOPT_ERROR,
-    _continuous_bounds,
-    _single_objective,
+    continuous_bounds,
     prior_as_dict,
+    single_objective,
 )
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
@@ -117,7 +117,7 @@ class PhysicsGenerator(Generator, StateOwner):
         return list(self.prior["knob_names"])
 
     def _check_vocs(self) -> None:
-        _, maximize = _single_objective(self.vocs)
+        _, maximize = single_objective(self.vocs)
         if not maximize:
             raise ValueError("pigp-physics models a peak: the VOCS objective must be MAXIMIZE")
         if sorted(self.vocs.variable_names) != sorted(self.knob_names):
@@ -127,7 +127,7 @@ class PhysicsGenerator(Generator, StateOwner):
             )
 
     def _bounds(self) -> torch.Tensor:
-        b = _continuous_bounds(self.vocs)  # in vocs.variable_names order
+        b = continuous_bounds(self.vocs)  # in vocs.variable_names order
         perm = [self.vocs.variable_names.index(n) for n in self.knob_names]
         return b[:, perm]
 
