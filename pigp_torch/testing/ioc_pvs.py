@@ -1,0 +1,313 @@
+r"""The PVs of the simulated ring's IOC: the caproto ``PVGroup`` and its class for given knobs.
+
+The IOC makes the EPICS path testable end to end without a control room: the same
+:class:`~pigp_torch.machine.epics.EpicsMachine` that would talk to SPEAR3 talks to this server over
+real Channel Access on the loopback interface.
+
+PVs served (``K`` knobs, prefix ``P``, default ``"SPEAR:"``):
+
+========================  ==========  ========================================================
+PV                        access      meaning
+========================  ==========  ========================================================
+``<knob>:CurrSetpt``      read/write  knob setpoint (winding current, A, by default); puts
+                                      outside the knob bounds are refused (control limits)
+``<knob>:Curr1``          read only   readback: follows the setpoint after ``ReadbackDelay``
+``P BeamLossRate``        read only   loss rate at the *readbacks* + Gaussian noise (mA/min),
+                                      refreshed every ``update_period`` seconds
+``P Sim:ReadbackDelay``   read/write  fault injection: seconds before readbacks follow (>= 0)
+``P Sim:NanReadings``     read/write  fault injection: the next N client reads of the loss
+                                      rate return NaN (decremented on each read)
+``P Sim:Frozen``          read/write  fault injection (tests): 1 stops the loss-rate refreshes
+                                      (value and timestamp stay), 0 resumes them
+``P Sim:RebootOnRead``    read/write  fault injection (tests): the N-th client read of the loss
+                                      rate from now (decremented on each read) is answered,
+                                      then the "IOC reboots": every setpoint and readback
+                                      drops to its power-on value (the initial knobs)
+========================  ==========  ========================================================
+
+The loss rate's CA timestamp is the time of its last refresh (a client read does not renew
+it), so a client can tell a fresh reading from a repeated one.
+
+The physics is :class:`~pigp_torch.machine.SimulatedMachine` around a
+:class:`~pigp_torch.simulation.RingCoupling` ring: at every refresh the machine is set to the
+readbacks and one noisy reading :math:`y = f(x_\mathrm{rb}) + \epsilon`,
+:math:`\epsilon \sim \mathcal N(0, \sigma_n^2)` (seeded, default :math:`\sigma_n` = 0.04 mA/min),
+is published. Between refreshes a read returns the last published value, as on a real monitor
+PV; a client that averages readings should space them by at least ``update_period``.
+
+Knob values are served in the simulator's control units (amps of the SPEAR3 skew windings; the
+``EGU`` field of each knob PV says so), as on the real machine.
+
+Safety: the server binds to 127.0.0.1 only (``EPICS_CAS_INTF_ADDR_LIST``) and sends its beacons
+to 127.0.0.1 only. :func:`start_sim_ioc` runs it in a subprocess on a free port for tests and
+demos; ``pigp serve-sim`` runs it in the foreground.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+import torch
+from caproto import ChannelType
+from caproto.server import PVGroup, pvproperty
+
+from pigp_torch._utils import DTYPE, check_bounds
+from pigp_torch.machine.base import check_setting
+from pigp_torch.testing import (
+    DEFAULT_PREFIX,
+    FROZEN_SUFFIX,
+    LOSS_RATE_SUFFIX,
+    NAN_READINGS_SUFFIX,
+    READBACK_DELAY_SUFFIX,
+    READBACK_SUFFIX,
+    REBOOT_ON_READ_SUFFIX,
+    SETPOINT_SUFFIX,
+)
+
+
+# ----------------------------------------------------------------------------- the PV group
+class SimRingIOC(PVGroup):
+    r"""Behaviour of the simulated ring IOC; its PVs are added by :func:`sim_ioc_class`.
+
+    Do not instantiate directly: use :func:`make_sim_ioc` (or :func:`sim_ioc_class`), which builds
+    a subclass with one setpoint/readback pvproperty pair per knob (the knob names are only known
+    at run time).
+
+    The initial knob values and switch settings are the pvproperty defaults chosen in
+    :func:`sim_ioc_class`.
+
+    Args:
+        machine: the :class:`~pigp_torch.machine.SimulatedMachine` that produces the readings.
+        update_period: seconds between loss-rate refreshes (> 0).
+        **kwargs: passed to :class:`caproto.server.PVGroup` (``prefix`` must stay ``""``: the
+            names are complete already).
+    """
+
+    #: Filled in by :func:`sim_ioc_class`.
+    knob_names: tuple[str, ...] = ()
+
+    def __init__(
+        self,
+        *args,
+        machine,
+        update_period: float = 0.1,
+        **kwargs,
+    ) -> None:
+        if not self.knob_names:
+            raise ValueError("use sim_ioc_class()/make_sim_ioc(): this class serves no knobs")
+        if list(machine.knob_names) != list(self.knob_names):
+            raise ValueError("the machine's knob names differ from the IOC's")
+        update_period = float(update_period)
+        if not (0.0 < update_period < math.inf):
+            raise ValueError(f"update_period must be positive and finite, got {update_period}")
+        self.machine = machine
+        self.update_period = update_period
+        super().__init__(*args, **kwargs)
+        d = len(self.knob_names)
+        self.setpoints = [getattr(self, f"setpoint_{i}") for i in range(d)]
+        self.readbacks = [getattr(self, f"readback_{i}") for i in range(d)]
+        self._x_readback = torch.tensor([rb.value for rb in self.readbacks], dtype=DTYPE)
+        self._power_on = [float(sp.value) for sp in self.setpoints]
+        self._last_reading = float("nan")
+        self._refresh_stamp = time.time()
+        self._served_nan = False
+        self._refresh()  # a valid first reading (this also checks the knobs against the bounds)
+        self._put_count = [0] * d  # latest put per knob wins over older delayed readbacks
+        self._tasks: set[asyncio.Task] = set()
+
+    # ------------------------------------------------------------------ hooks
+    async def _on_setpoint(self, i: int, value: float) -> None:
+        """Setpoint ``i`` accepted (the control limits already passed): move its readback."""
+        self._put_count[i] += 1
+        delay = float(self.readback_delay.value)
+        if delay <= 0:
+            await self._set_readback(i, value)
+            return
+        task = asyncio.get_running_loop().create_task(
+            self._delayed_readback(i, value, self._put_count[i], delay)
+        )
+        self._tasks.add(task)  # keep a reference until it is done
+        task.add_done_callback(self._tasks.discard)
+
+    async def _delayed_readback(self, i: int, value: float, count: int, delay: float) -> None:
+        await asyncio.sleep(delay)
+        if self._put_count[i] == count:  # no newer put in the meantime
+            await self._set_readback(i, value)
+
+    async def _set_readback(self, i: int, value: float) -> None:
+        self._x_readback[i] = float(value)
+        await self.readbacks[i].write(float(value))
+
+    def _refresh(self) -> float:
+        """One noisy reading of the simulated loss rate at the current readbacks."""
+        self.machine.set(self._x_readback)
+        self._last_reading = float(self.machine.read())
+        self._refresh_stamp = time.time()
+        return self._last_reading
+
+    async def _refresh_loop(self, async_lib) -> None:
+        """Publish a new loss-rate reading every ``update_period`` seconds (forever), except
+        while ``Sim:Frozen`` is set."""
+        sleep = async_lib.library.sleep
+        while True:
+            t0 = time.monotonic()
+            if not int(self.frozen.value):
+                value = self._refresh()
+                await self.loss_rate.write(value, timestamp=self._refresh_stamp)
+                self._served_nan = False
+            await sleep(max(0.0, self.update_period - (time.monotonic() - t0)))
+
+    async def _reboot(self) -> None:
+        """Every setpoint and readback back at its power-on value (an IOC without autosave)."""
+        for i, value in enumerate(self._power_on):
+            self._put_count[i] += 1
+            await self.setpoints[i].write(value, verify_value=False)
+            await self._set_readback(i, value)
+
+    async def _on_read(self):
+        """A client reads the loss rate: NaN while ``Sim:NanReadings`` > 0, else the last value
+        with the timestamp of its refresh (``None``: the stored value is served unchanged)."""
+        n_reboot = int(self.reboot_on_read.value)
+        if n_reboot > 0:
+            await self.reboot_on_read.write(n_reboot - 1)
+            if n_reboot == 1:
+                await self._reboot()
+        n = int(self.nan_readings.value)
+        if n > 0:
+            await self.nan_readings.write(n - 1)
+            self._served_nan = True
+            return float("nan")
+        if self._served_nan:  # put the last refresh back, with its own timestamp
+            self._served_nan = False
+            await self.loss_rate.write(self._last_reading, timestamp=self._refresh_stamp)
+        return None
+
+    # ------------------------------------------------------------------ names
+    @property
+    def loss_rate_pv(self) -> str:
+        return self.loss_rate.pvspec.name
+
+    @property
+    def pv_names(self) -> list[str]:
+        """Every PV served (setpoints, readbacks, loss rate, switches)."""
+        return list(self.pvdb)
+
+
+def sim_ioc_class(
+    knob_names,
+    bounds,
+    *,
+    prefix: str = DEFAULT_PREFIX,
+    setpoint_suffix: str = SETPOINT_SUFFIX,
+    readback_suffix: str = READBACK_SUFFIX,
+    x_init=None,
+    readback_delay: float = 0.0,
+    nan_readings: int = 0,
+    units: str = "A",
+) -> type[SimRingIOC]:
+    r"""A :class:`SimRingIOC` subclass with the PVs of ``knob_names`` (see the module table).
+
+    The pvproperties are created here because caproto collects them at class creation and the
+    knob names are data. Each setpoint has control limits :math:`[\ell_i, h_i]` from ``bounds``,
+    so caproto itself refuses a put outside them (the put fails with an error status; the
+    setpoint and readback are unchanged).
+
+    Args:
+        knob_names: ``K`` knob names (PV name stems, e.g. ``"01G-QSS4"``).
+        bounds: ``2 x K`` knob bounds.
+        prefix: prefix of the loss-rate and switch PVs.
+        setpoint_suffix, readback_suffix: appended to each knob name.
+        x_init: ``K`` initial setpoints and readbacks (default zeros: skews off).
+        readback_delay: initial value of the ``Sim:ReadbackDelay`` switch (s, >= 0).
+        nan_readings: initial value of the ``Sim:NanReadings`` switch (>= 0).
+        units: engineering units of the knob PVs (default ``"A"``).
+    """
+    names = [str(n) for n in knob_names]
+    bounds = check_bounds(bounds)
+    if len(names) != bounds.shape[1]:
+        raise ValueError(f"{len(names)} knob names for {bounds.shape[1]} knobs")
+    if len(set(names)) != len(names):
+        raise ValueError("knob names must be unique")
+    x0 = torch.zeros(len(names), dtype=DTYPE) if x_init is None else x_init
+    x0 = check_setting(x0, bounds).tolist()
+    if not (0.0 <= float(readback_delay) < math.inf):
+        raise ValueError(f"readback_delay must be finite and >= 0, got {readback_delay}")
+    if int(nan_readings) < 0:
+        raise ValueError(f"nan_readings must be >= 0, got {nan_readings}")
+    attrs: dict = {"knob_names": tuple(names), "__module__": __name__}
+    for i, name in enumerate(names):
+        lo, hi = float(bounds[0, i]), float(bounds[1, i])
+        setpoint = pvproperty(
+            value=x0[i],
+            name=f"{name}{setpoint_suffix}",
+            dtype=ChannelType.DOUBLE,
+            lower_ctrl_limit=lo,
+            upper_ctrl_limit=hi,
+            precision=6,
+            units=str(units),
+            doc=f"setpoint of {name} ({units}), limits [{lo}, {hi}]",
+        )
+
+        async def put(group, instance, value, _i=i):
+            await group._on_setpoint(_i, value)
+
+        setpoint.putter(put)
+        attrs[f"setpoint_{i}"] = setpoint
+        attrs[f"readback_{i}"] = pvproperty(
+            value=x0[i],
+            name=f"{name}{readback_suffix}",
+            dtype=ChannelType.DOUBLE,
+            read_only=True,
+            precision=6,
+            units=str(units),
+            doc=f"readback of {name} ({units})",
+        )
+
+    loss_rate = pvproperty(
+        value=float("nan"),
+        name=f"{prefix}{LOSS_RATE_SUFFIX}",
+        dtype=ChannelType.DOUBLE,
+        read_only=True,
+        precision=4,
+        units="mA/min",
+        doc="simulated loss rate at the readbacks plus Gaussian noise (mA/min)",
+    )
+
+    async def start_refresh(group, instance, async_lib):
+        await group._refresh_loop(async_lib)
+
+    async def get_loss_rate(group, instance):
+        return await group._on_read()
+
+    loss_rate.startup(start_refresh)
+    loss_rate.getter(get_loss_rate)
+    attrs["loss_rate"] = loss_rate
+    attrs["readback_delay"] = pvproperty(
+        value=float(readback_delay),
+        name=f"{prefix}{READBACK_DELAY_SUFFIX}",
+        dtype=ChannelType.DOUBLE,
+        lower_ctrl_limit=0.0,
+        upper_ctrl_limit=3600.0,
+        units="s",
+        doc="fault injection: seconds before a readback follows its setpoint",
+    )
+    switches = (  # (attribute, suffix, initial value, upper limit, meaning)
+        ("nan_readings", NAN_READINGS_SUFFIX, int(nan_readings), 1_000_000,
+         "fault injection: the next N reads of the loss rate return NaN"),
+        ("frozen", FROZEN_SUFFIX, 0, 1,
+         "fault injection (tests): 1 stops the loss-rate refreshes"),
+        ("reboot_on_read", REBOOT_ON_READ_SUFFIX, 0, 1_000_000,
+         "fault injection (tests): reboot (knobs to power-on values) at the N-th read"),
+    )  # fmt: skip
+    for attr, suffix, value, upper, doc in switches:
+        attrs[attr] = pvproperty(
+            value=value,
+            name=f"{prefix}{suffix}",
+            dtype=ChannelType.LONG,
+            lower_ctrl_limit=0,
+            upper_ctrl_limit=upper,
+            doc=doc,
+        )
+    return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
