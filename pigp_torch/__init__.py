@@ -6,7 +6,7 @@ matrix) -> ``kernels`` and ``models`` (GPs) -> ``optimizers`` (ask/tell) -> ``op
 
 Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a
 multi-threaded OpenBLAS on a busy machine, set ``OPENBLAS_NUM_THREADS=1`` before importing numpy
-(the ``pigp`` command and the test suite do) — it is up to 10x faster.
+(the ``pigp`` command and the test suite do) — it is much faster.
 """
 
 from pigp_torch._version import __version__

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 
 # The simulator multiplies many stacks of 6x6 matrices with numpy; a multi-threaded OpenBLAS makes
-# them up to 10x slower on a busy machine. Must be set before numpy is first imported.
+# them much slower on a busy machine. Must be set before numpy is first imported.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse

@@ -110,10 +110,8 @@ class CaprotoAdapter:
     def read_many(self, names: list[str], timeout: float) -> list[float]:
         """Read the scalar value of each PV as a float (NaN passes through); one deadline.
 
-        The reads are sequential blocking reads: a read costs one round trip (~1 ms on
-        loopback), less than dispatching parallel replies through caproto's callback thread
-        (measured: 13 readbacks in ~11-15 ms sequentially vs ~48 ms with callbacks on a
-        loaded 2-core host).
+        The reads are sequential blocking reads: a read costs one round trip, less than
+        dispatching parallel replies through caproto's callback thread.
         """
         deadline = time.monotonic() + timeout
         values = []

@@ -32,11 +32,11 @@ Speed (why the code looks the way it does; the benchmark that times each choice 
 :mod:`~pigp_torch.simulation.throughput`):
 
 * every product with a *fixed* matrix is one large GEMM: the congruence :math:`S R S^T` is
-  ``vec(R) @ (S ⊗ S)^T`` (36×36; 4-10x faster than two 6×6 products plus a transpose copy);
+  ``vec(R) @ (S ⊗ S)^T`` (36×36; faster than two 6×6 products plus a transpose copy);
 * a knob touches two rows/columns (:math:`E` has two entries), so :math:`K X K^T` is four
   row/column updates instead of matrix products;
 * per-sample 6×6 products (the doubling) go through numpy on the CPU (its stacked 6×6 ``matmul``
-  is 2-4x faster than ``torch.bmm``) and through ``torch.matmul`` on other devices;
+  is faster than ``torch.bmm``) and through ``torch.matmul`` on other devices;
 * the doubling count comes from the damping of the knobs-off ring (:math:`2^k (1-\rho) \ge 32`),
   not from a fixed worst case;
 * without autograd, updates are in place (no large temporaries);
@@ -223,7 +223,7 @@ _STATE_FIELDS = ("eps", "inv_sigma_xy", "stable")
 
 # ----------------------------------------------------------------------------- Lyapunov solver
 def _doubling_numpy(M: np.ndarray, B: np.ndarray, n_iter: int):
-    """Doubling iteration in numpy (its stacked 6x6 products are ~4x faster than torch.bmm)."""
+    """Doubling iteration in numpy (its stacked 6x6 products are faster than torch.bmm)."""
     R, A = B.copy(), M.copy()
     with np.errstate(over="ignore", invalid="ignore"):  # unstable settings overflow: flagged later
         for _ in range(n_iter):
@@ -239,8 +239,8 @@ _NUMPY_LOCK = threading.Lock()
 def _doubling(M: torch.Tensor, B: torch.Tensor, n_iter: int, use_numpy: bool):
     """``(R, residual)`` by doubling, through numpy or on the tensors' device (no autograd)."""
     if use_numpy:
-        # numpy's stacked matmul keeps the GIL; two threads calling it at once run slower than one
-        # (measured 0.10 s -> 0.23 s for the same work). One at a time, while the other thread
+        # numpy's stacked matmul keeps the GIL; two threads calling it at once run slower than
+        # one. One at a time, while the other thread
         # runs the torch part of its chunk, which does release the GIL.
         with _NUMPY_LOCK:
             R, residual = _doubling_numpy(M.numpy(), B.numpy(), n_iter)
@@ -370,7 +370,7 @@ def _knob_rows(X: torch.Tensor, a: torch.Tensor, E, inplace: bool) -> torch.Tens
 
     In place: row i += a E[i,j] row j for the non-zeros of ``E`` (``E`` is then the tuple
     ``knob_terms``; rows read are never written). Otherwise ``X + a (E X)`` (``E`` a tensor):
-    three autograd nodes instead of views and in-place updates (Hessians ~1.5x faster).
+    three autograd nodes instead of views and in-place updates (faster Hessians).
     """
     if not inplace:
         return X + a[:, :, None] * (E @ X)

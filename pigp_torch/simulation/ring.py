@@ -462,7 +462,8 @@ class RingCoupling:
         return f_inf + gain * self.inv_sigma_xy(x)
 
     def reference(self, x) -> CouplingResult:
-        """The same observables from pyAT ``ohmi_envelope`` with the knobs set (~0.1 s each)."""
+        """The same observables from pyAT ``ohmi_envelope`` with the knobs set (slow: one envelope
+        computation each)."""
         X, single = as_knob_tensor(x, self.dim)
         ring = self._m["ring"].deepcopy()
         f_inf, gain = self.loss_rate_map

@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     ioc = sim_ioc_from_args(args)
     # The ring's large, long-lived object graph need not be traversed by the garbage collector,
-    # neither while serving nor at exit (that pass took ~2 s on a busy host).
+    # neither while serving nor at exit.
     gc.freeze()
     serve(ioc, args.port)
     print("simulated IOC stopped", flush=True)
