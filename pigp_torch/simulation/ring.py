@@ -30,11 +30,6 @@ that error seed 1 has 0.5 mA/min with the knobs at zero and 1.7 mA/min at its op
 from __future__ import annotations
 
 import functools
-import hashlib
-import json
-import math
-import re
-from pathlib import Path
 from typing import NamedTuple
 
 import at
@@ -43,9 +38,10 @@ import torch
 
 from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE, as_knob_tensor
-from pigp_torch.simulation import deck as _deck
 from pigp_torch.simulation import errors as _errors
 from pigp_torch.simulation import reference as _ref
+from pigp_torch.simulation.calibration import calibrate_error_scale, calibrate_loss_rate_map
+from pigp_torch.simulation.lattice import fingerprint, insert_knobs, load_ring
 from pigp_torch.simulation.linear_model import SegmentModel, equilibrium_chunked
 
 TARGET_RATIO = 0.0071  # skews-off eps_y / eps_x
@@ -71,150 +67,12 @@ class CouplingResult(NamedTuple):
     stable: torch.Tensor
 
 
-# ---------------------------------------------------------------------- lattice and knobs
-def load_ring(source, *, energy: float | None = None) -> at.Lattice:
-    """A radiating pyAT ring from an element table or any lattice file pyAT loads.
-
-    Args:
-        source: an ``at.Lattice``; a key of :data:`~pigp_torch.simulation.deck.DECKS`; a JSON
-            element table (our format); or any file ``at.load_lattice`` reads (.mat, .m, .lte,
-            ...).
-        energy: beam energy (eV) for element tables (default 3 GeV) and for files that carry none.
-
-    Returns:
-        A fresh 6-D ring (:func:`~pigp_torch.simulation.deck.make_radiating` applied when the
-        source is not 6-D).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: the lattice has no RF cavity (no equilibrium emittance without one).
-    """
-    if isinstance(source, at.Lattice):
-        ring = source.deepcopy()
-    elif str(source) in _deck.DECKS or _is_element_table(source):
-        e = _deck.SPEAR3_ENERGY if energy is None else float(energy)
-        return _deck.ring_from_table(_deck.load_table(source), energy=e)
-    else:
-        path = Path(source)
-        if not path.is_file():
-            raise FileNotFoundError(f"no lattice file at {path}")
-        kw = {} if energy is None else {"energy": float(energy)}
-        ring = at.load_lattice(str(path), **kw)
-    if not any(isinstance(e, at.RFCavity) for e in ring):
-        raise ValueError("the lattice has no RF cavity: add one to compute equilibrium emittances")
-    if not ring.is_6d:
-        _deck.make_radiating(ring)
-    return ring
-
-
-def _is_element_table(source) -> bool:
-    path = Path(str(source))
-    if path.suffix.lower() != ".json" or not path.is_file():
-        return False
-    with open(path, encoding="utf-8") as fh:
-        data = json.load(fh)
-    return isinstance(data, dict) and isinstance(data.get("elements"), list)
-
-
-_INDEXED = re.compile(r"^(?P<fam>.+)\[(?P<n>\d+)\]$")
-
-
-def resolve_knob(ring: at.Lattice, name: str) -> int:
-    """Element index of the knob ``name`` (``FAM``, ``FAM[n]`` or ``#i``; module docstring).
-
-    Raises:
-        ValueError: no such element, or a family name that is not unique.
-    """
-    name = str(name)
-    if name.startswith("#"):
-        i = int(name[1:])
-        if not 0 <= i < len(ring):
-            raise ValueError(f"knob {name!r}: the ring has {len(ring)} elements")
-        return i
-    m = _INDEXED.match(name)
-    fam, nth = (m["fam"], int(m["n"])) if m else (name, None)
-    idx = [i for i, e in enumerate(ring) if e.FamName == fam]
-    if not idx:
-        raise ValueError(f"knob {name!r}: no element of family {fam!r} in the ring")
-    if nth is None:
-        if len(idx) > 1:
-            raise ValueError(
-                f"knob {name!r}: {len(idx)} elements of that family; name one as {fam}[n]"
-            )
-        return idx[0]
-    if nth >= len(idx):
-        raise ValueError(f"knob {name!r}: family {fam!r} has only {len(idx)} elements")
-    return idx[nth]
-
-
-def insert_knobs(ring: at.Lattice, names) -> tuple[at.Lattice, list[int]]:
-    """A copy of ``ring`` with a thin winding at every knob, and the windings' element indices.
-
-    A thin multipole is used as it is; a thick multipole (sextupole, quadrupole, ...) is split in
-    two halves with ``at.ThinMultipole(name)`` between them (the halves keep every attribute:
-    errors applied later treat them as one magnet).
-
-    Raises:
-        ValueError: an unknown or repeated knob, or a knob on an element that is neither thin
-            nor a multipole.
-    """
-    names = [str(n) for n in names]
-    if not names:
-        raise ValueError("at least one knob is needed")
-    if len(set(names)) != len(names):
-        raise ValueError("knob names must be unique")
-    targets = [resolve_knob(ring, n) for n in names]
-    if len(set(targets)) != len(targets):
-        raise ValueError("two knob names resolve to the same element")
-    by_index = dict(zip(targets, names, strict=True))
-    elems = []
-    where = {}
-    for i, e in enumerate(ring):
-        if i not in by_index:
-            elems.append(e.deepcopy())
-            continue
-        name = by_index[i]
-        thin_already = isinstance(e, at.ThinMultipole) and not getattr(e, "Length", 0.0) > 0
-        if thin_already:
-            thin = e.deepcopy()
-            elems.append(thin)
-        elif isinstance(e, at.Multipole) and e.Length > 0:
-            half = e.deepcopy()
-            half.Length = e.Length / 2
-            twin = half.deepcopy()
-            thin = at.ThinMultipole(name, [0.0, 0.0], [0.0, 0.0])
-            elems += [half, thin, twin]
-        else:
-            raise ValueError(
-                f"knob {name!r}: element {type(e).__name__} {e.FamName!r} cannot carry a skew "
-                "winding (use a thin multipole, a sextupole or a quadrupole)"
-            )
-        where[name] = len(elems) - (1 if thin_already else 2)
-    for i in where.values():
-        pa = np.zeros(max(2, len(elems[i].PolynomA)))
-        pb = np.zeros(max(2, len(elems[i].PolynomB)))
-        pa[: len(elems[i].PolynomA)] = elems[i].PolynomA
-        pb[: len(elems[i].PolynomB)] = elems[i].PolynomB
-        elems[i].PolynomA, elems[i].PolynomB = pa, pb
-        elems[i].MaxOrder = max(int(getattr(elems[i], "MaxOrder", 1)), 1)
-    out = at.Lattice(elems, **ring.attrs)
-    return out, [where[n] for n in names]
-
-
-def _fingerprint(ring: at.Lattice) -> str:
-    """A content hash of a ring (cache key of the machines built on it)."""
-    h = hashlib.sha1()
-    for e in ring:
-        h.update(repr(sorted((k, repr(v)) for k, v in e.items())).encode())
-    return h.hexdigest()
-
-
 # ---------------------------------------------------------------------- one machine
 _BASES: dict = {}
 
 
 def _base(ring: at.Lattice, knobs: tuple[str, ...]) -> dict:
-    key = (_fingerprint(ring), knobs)
+    key = (fingerprint(ring), knobs)
     if key not in _BASES:
         base, index = insert_knobs(ring, knobs)
         _BASES[key] = {"ring": base, "knob_index": index, "key": key}
@@ -252,43 +110,6 @@ def _machine(base_key, error_seed: int, target_ratio: float, scale) -> dict:
         "obs": (obs_index, obs_weight),
         "model": model,
     }
-
-
-def calibrate_error_scale(ring, pattern, target_ratio: float) -> float:
-    """Global error scale s with εy/εx(knobs off) = target (εy ≈ s²: secant steps in log-log).
-
-    ohmi_envelope's log-ratio carries round-off of ~1e-4, so near the goal the secant slope can
-    turn to noise and the last step land farther away than an earlier one; the iterate closest
-    to the goal is then returned if it is within 1e-3 (in log ratio).
-
-    Raises:
-        RuntimeError: no scale within 1e-3 after 10 evaluations.
-    """
-
-    def log_ratio(s):
-        r = ring.deepcopy()
-        pattern.apply(r, s)
-        eps = _ref.mode_emittances(r)
-        return math.log(eps[0] / eps[1])
-
-    goal = math.log(target_ratio)
-    s0, f0 = 1.0, log_ratio(1.0)
-    s1 = s0 * math.exp((goal - f0) / 2)
-    f1 = log_ratio(s1)
-    closest = min((abs(f0 - goal), s0), (abs(f1 - goal), s1))
-    for _ in range(8):
-        if abs(f1 - goal) < 1e-5:
-            return s1
-        slope = (f1 - f0) / (math.log(s1) - math.log(s0)) if s1 != s0 else 2.0
-        if not slope > 0.2:  # round-off dominates: keep the quadratic law
-            slope = 2.0
-        s0, f0 = s1, f1
-        s1 = s1 * math.exp((goal - f1) / slope)
-        f1 = log_ratio(s1)
-        closest = min(closest, (abs(f1 - goal), s1))
-    if closest[0] <= 1e-3:
-        return closest[1]
-    raise RuntimeError(f"error-scale calibration did not converge (ratio {math.exp(f1):.5f})")
 
 
 class RingCoupling:
@@ -540,16 +361,3 @@ def _default_map(base_key, target_ratio: float, calibration: tuple) -> tuple[flo
         loss_rate_map=(0.0, 1.0),
     )
     return calibrate_loss_rate_map(ref, *LOSS_RATE_ANCHOR[1:])
-
-
-def calibrate_loss_rate_map(sim: RingCoupling, off: float = 0.5, best: float = 1.7):
-    """``(f_inf, g)`` that give ``sim`` ``off`` mA/min at zero knobs and ``best`` at its optimum.
-
-    The optimum of ⟨1/(σxσy)⟩ in the knob box does not depend on the (positive, linear) map.
-    """
-    p_off = float(sim.inv_sigma_xy(torch.zeros(sim.dim, dtype=DTYPE)))
-    _, p_best = find_optimum(
-        sim.inv_sigma_xy, sim.bounds, n_starts=8, x_init=torch.zeros(1, sim.dim, dtype=DTYPE)
-    )
-    gain = (best - off) / (p_best - p_off)
-    return off - gain * p_off, gain

@@ -16,7 +16,7 @@ powered windings without 03G-QSS3), ``"powered14"``, ``"all72"``, or a list of w
 
 Loss-rate map: :data:`LOSS_RATE_MAP` (f∞, g) is one pair of constants for the ring, chosen so that
 error seed 1 of the user-mode ring with the 13 default knobs has 0.5 mA/min with the skews off and
-1.7 mA/min at its optimum (:func:`~pigp_torch.simulation.ring.calibrate_loss_rate_map`
+1.7 mA/min at its optimum (:func:`~pigp_torch.simulation.calibration.calibrate_loss_rate_map`
 recomputes it; a test checks it still holds).
 """
 

@@ -9,7 +9,7 @@ import torch
 
 from pigp_torch.simulation import LOSS_RATE_MAP, RingCoupling, Spear3Coupling
 from pigp_torch.simulation.deck import deck_path, load_table, ring_from_table
-from pigp_torch.simulation.ring import insert_knobs, resolve_knob
+from pigp_torch.simulation.lattice import insert_knobs, resolve_knob
 from pigp_torch.simulation.spear3 import knob_calibration_for
 
 D = torch.float64
