@@ -69,21 +69,6 @@ def test_knob_on_a_thick_sextupole_is_split_around_a_thin_winding():
     assert float((a - b).norm() / a.norm()) < 1e-3
 
 
-def test_knob_names_resolve_or_fail_clearly():
-    """Knob names: a unique family, FAM[n] or #index; ambiguous or missing names are refused."""
-    ring = ring_from_table(load_table("user"))
-    assert ring[resolve_knob(ring, "01G-QSS4")].FamName == "01G-QSS4"
-    assert resolve_knob(ring, "#5") == 5
-    with pytest.raises(ValueError, match="name one as SF"):
-        resolve_knob(ring, "SF")
-    with pytest.raises(ValueError, match="no element of family"):
-        resolve_knob(ring, "NOPE")
-    with pytest.raises(ValueError, match="cannot carry a skew winding"):
-        insert_knobs(ring, ["DA1A"])
-    with pytest.raises(ValueError, match="one value or one per knob"):
-        RingCoupling(ring, ["01G-QSS4", "02G-QSS3"], [1e-3, 1e-3, 1e-3])
-
-
 def test_default_loss_rate_map_is_calibrated_on_error_seed_1(tmp_path):
     """Without a loss-rate map, seed 1 of a user's ring reads 0.5 mA/min at zero knobs and
     1.7 at its optimum; other seeds share that map."""
