@@ -7,17 +7,15 @@ import pytest
 import torch
 
 from pigp_torch.simulation.linear_model import (
-    J6,
     SegmentModel,
     _congruence,
     _knob_cols,
     _knob_rows,
     doubling_count,
-    eigen_emittances,
     equilibrium,
     equilibrium_chunked,
-    lyapunov_doubling,
 )
+from pigp_torch.simulation.lyapunov import J6, eigen_emittances, lyapunov_doubling
 
 J = torch.as_tensor(J6)
 
