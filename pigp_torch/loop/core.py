@@ -4,7 +4,6 @@ then the restore and the end record)."""
 from __future__ import annotations
 
 import dataclasses
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -22,25 +21,10 @@ from pigp_torch.loop.moves import (
     restore_knobs,
 )
 from pigp_torch.loop.options import RunOptions
-from pigp_torch.loop.signals import RunAborted, SignalGuard, classify
+from pigp_torch.loop.signals import SignalGuard, classify
+from pigp_torch.loop.steps import best_row, knob_columns, logged_initial_knobs, run_steps
 from pigp_torch.machine.base import Machine, check_setting
 from pigp_torch.runlog import RunLog, RunRecords, evaluation_rows, replay
-
-_RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
-
-
-def _knob_columns(knob_names, objective, d: int) -> list[str]:
-    if knob_names is None:
-        knob_names = getattr(objective, "knob_names", None)
-    names = [f"x{i}" for i in range(d)] if knob_names is None else [str(n) for n in knob_names]
-    if len(names) != d:
-        raise ValueError(f"{len(names)} knob names for {d} knobs")
-    if len(set(names)) != d:
-        raise ValueError("knob names must be unique")
-    clash = sorted(set(names) & set(_RESERVED))
-    if clash:
-        raise ValueError(f"knob names {clash} clash with the table columns {_RESERVED}")
-    return names
 
 
 def optimize(
@@ -135,7 +119,7 @@ def optimize(
 
     x_found = torch.as_tensor(objective.get(), dtype=DTYPE).clone() if is_machine else None
     x_initial = x_found
-    logged_initial = _logged_initial_knobs(resume)
+    logged_initial = logged_initial_knobs(resume)
     if is_machine and logged_initial is not None:
         if logged_initial.shape != x_found.shape:
             raise ValueError(
@@ -154,7 +138,7 @@ def optimize(
         x0 = as_knob_tensor(x0.reshape(-1), d, name="x0")[0][0]
     else:
         d = getattr(optimizer, "dim", None) or len(logged[0]["x"])
-    names = _knob_columns(knob_names, objective, d)
+    names = knob_columns(knob_names, objective, d)
     label = method if method is not None else getattr(optimizer, "name", type(optimizer).__name__)
     maximize = bool(getattr(optimizer, "maximize", True))
     if isinstance(resume, RunRecords) and resume.knob_names and resume.knob_names != names:
@@ -226,7 +210,7 @@ def optimize(
             if logged:
                 replay(optimizer, logged, progress=progress)
                 rows = evaluation_rows(logged, names, label)
-            _run_steps(
+            run_steps(
                 evaluate,
                 optimizer,
                 x0,
@@ -251,7 +235,7 @@ def optimize(
         finally:
             guard.deferring = True  # from here on: restore and end record, signals deferred
 
-        best = _best(rows, names, maximize)
+        best = best_row(rows, names, maximize)
         restored_to, final_knobs, restore_error = "none", None, None
         restored, attempts_made, attempt_errors = True, 0, []
         if is_machine:
@@ -324,109 +308,3 @@ def optimize(
         )
     table = pd.DataFrame(rows, columns=["step", *names, "y", "method", "ask_time_s", "eval_time_s"])
     return table.astype({"step": "int64", **dict.fromkeys(names, "float64"), "y": "float64"})
-
-
-def _logged_initial_knobs(resume) -> torch.Tensor | None:
-    """The initial knobs of a resumed run's first start record (``None`` if not logged)."""
-    if not isinstance(resume, RunRecords):
-        return None
-    for start in resume.starts:
-        knobs = start.get("initial_knobs")
-        if knobs is not None:
-            return torch.tensor([float(v) for v in knobs], dtype=DTYPE)
-    return None
-
-
-def _best(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
-    """``{"step", "x", "y"}`` of the best row (first on ties), ``None`` without rows."""
-    if not rows:
-        return None
-    ys = torch.tensor([r["y"] for r in rows], dtype=DTYPE)
-    b = rows[int(ys.argmax() if maximize else ys.argmin())]
-    return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
-
-
-def _run_steps(
-    evaluate,
-    optimizer,
-    x0,
-    first,
-    budget,
-    rows,
-    *,
-    names,
-    label,
-    moves,
-    log,
-    x_initial,
-    x_found,
-    reading_info,
-    callback,
-    progress,
-    objective_floor,
-    guard: SignalGuard,
-) -> None:
-    """Steps ``first .. budget-1`` of :func:`optimize`; appends to ``rows`` as it goes."""
-    if log is not None:
-        extra = {}
-        if x_found is not None and x_found is not x_initial:
-            extra["found_knobs"] = x_found.tolist()
-        log.log_start(x_initial, budget=budget, first_step=first, **extra)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=budget, initial=first, desc=str(label))
-    try:
-        x = x0
-        seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
-        for step in range(first, budget):
-            t_set = time.time()
-            ask_time = 0.0
-            notices: list[dict] = []
-            if step > 0:
-                t0 = time.perf_counter()
-                x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
-                ask_time = time.perf_counter() - t0
-                notices = list(getattr(optimizer, "notices", ())[seen:])
-                seen += len(notices)
-            if log is not None:
-                for notice in notices:  # the optimizer's own findings, before the move
-                    log.write("notice", step=step, time=_utc_now(), **notice)
-            t0 = time.perf_counter()
-            # the start point and the first point of a resumed run are always ramped to
-            y, reads = evaluate(x, ramp=(moves == "ramp" or step == first), step=step)
-            info = reading_info()
-            eval_time = time.perf_counter() - t0
-            row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
-            row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
-            if notices:
-                row["notices"] = [n["message"] for n in notices]
-            with guard.held():  # a signal never splits the log record from the table row
-                if log is not None:  # on disk before the optimizer hears of it
-                    log.log_evaluation(
-                        step,
-                        x,
-                        y,
-                        reads=reads,
-                        t_set=t_set,
-                        t_read=time.time(),
-                        ask_time_s=ask_time,
-                        eval_time_s=eval_time,
-                        **({"reading": info} if isinstance(info, dict) else {}),
-                    )
-                rows.append(row)
-            t0 = time.perf_counter()
-            optimizer.tell(x, y)
-            row["ask_time_s"] = ask_time + (time.perf_counter() - t0)
-            if callback is not None:
-                callback(dict(row))
-            if bar is not None:
-                bar.update(1)
-            if objective_floor is not None and y < objective_floor:
-                raise RunAborted(
-                    f"objective {y:.6g} at step {step} is below the floor {objective_floor:g}"
-                )
-    finally:
-        if bar is not None:
-            bar.close()

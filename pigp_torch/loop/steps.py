@@ -1,0 +1,136 @@
+r"""The steps of a run between its start and its end: ask -> evaluate -> tell with the run log
+and the table kept in step, and the small helpers of :func:`~pigp_torch.loop.optimize`."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch._utils import utc_now as _utc_now
+from pigp_torch.loop.signals import RunAborted, SignalGuard
+from pigp_torch.runlog import RunRecords
+
+_RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
+
+
+def knob_columns(knob_names, objective, d: int) -> list[str]:
+    if knob_names is None:
+        knob_names = getattr(objective, "knob_names", None)
+    names = [f"x{i}" for i in range(d)] if knob_names is None else [str(n) for n in knob_names]
+    if len(names) != d:
+        raise ValueError(f"{len(names)} knob names for {d} knobs")
+    if len(set(names)) != d:
+        raise ValueError("knob names must be unique")
+    clash = sorted(set(names) & set(_RESERVED))
+    if clash:
+        raise ValueError(f"knob names {clash} clash with the table columns {_RESERVED}")
+    return names
+
+
+def logged_initial_knobs(resume) -> torch.Tensor | None:
+    """The initial knobs of a resumed run's first start record (``None`` if not logged)."""
+    if not isinstance(resume, RunRecords):
+        return None
+    for start in resume.starts:
+        knobs = start.get("initial_knobs")
+        if knobs is not None:
+            return torch.tensor([float(v) for v in knobs], dtype=DTYPE)
+    return None
+
+
+def best_row(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
+    """``{"step", "x", "y"}`` of the best row (first on ties), ``None`` without rows."""
+    if not rows:
+        return None
+    ys = torch.tensor([r["y"] for r in rows], dtype=DTYPE)
+    b = rows[int(ys.argmax() if maximize else ys.argmin())]
+    return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
+
+
+def run_steps(
+    evaluate,
+    optimizer,
+    x0,
+    first,
+    budget,
+    rows,
+    *,
+    names,
+    label,
+    moves,
+    log,
+    x_initial,
+    x_found,
+    reading_info,
+    callback,
+    progress,
+    objective_floor,
+    guard: SignalGuard,
+) -> None:
+    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`; appends to ``rows`` as
+    it goes."""
+    if log is not None:
+        extra = {}
+        if x_found is not None and x_found is not x_initial:
+            extra["found_knobs"] = x_found.tolist()
+        log.log_start(x_initial, budget=budget, first_step=first, **extra)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=budget, initial=first, desc=str(label))
+    try:
+        x = x0
+        seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
+        for step in range(first, budget):
+            t_set = time.time()
+            ask_time = 0.0
+            notices: list[dict] = []
+            if step > 0:
+                t0 = time.perf_counter()
+                x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
+                ask_time = time.perf_counter() - t0
+                notices = list(getattr(optimizer, "notices", ())[seen:])
+                seen += len(notices)
+            if log is not None:
+                for notice in notices:  # the optimizer's own findings, before the move
+                    log.write("notice", step=step, time=_utc_now(), **notice)
+            t0 = time.perf_counter()
+            # the start point and the first point of a resumed run are always ramped to
+            y, reads = evaluate(x, ramp=(moves == "ramp" or step == first), step=step)
+            info = reading_info()
+            eval_time = time.perf_counter() - t0
+            row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
+            row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
+            if notices:
+                row["notices"] = [n["message"] for n in notices]
+            with guard.held():  # a signal never splits the log record from the table row
+                if log is not None:  # on disk before the optimizer hears of it
+                    log.log_evaluation(
+                        step,
+                        x,
+                        y,
+                        reads=reads,
+                        t_set=t_set,
+                        t_read=time.time(),
+                        ask_time_s=ask_time,
+                        eval_time_s=eval_time,
+                        **({"reading": info} if isinstance(info, dict) else {}),
+                    )
+                rows.append(row)
+            t0 = time.perf_counter()
+            optimizer.tell(x, y)
+            row["ask_time_s"] = ask_time + (time.perf_counter() - t0)
+            if callback is not None:
+                callback(dict(row))
+            if bar is not None:
+                bar.update(1)
+            if objective_floor is not None and y < objective_floor:
+                raise RunAborted(
+                    f"objective {y:.6g} at step {step} is below the floor {objective_floor:g}"
+                )
+    finally:
+        if bar is not None:
+            bar.close()
