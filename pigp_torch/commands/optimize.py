@@ -24,10 +24,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import signal
 import sys
 from pathlib import Path
+
+from pigp_torch.commands.optimize_output import (
+    print_plan,
+    print_resume_state,
+    print_summary,
+    say,
+)
 
 #: Exit statuses of ``pigp optimize`` (also in ``--help`` and the README).
 EXIT_OK = 0
@@ -112,138 +118,6 @@ def register(sub, bench) -> None:
     p.set_defaults(func=cmd_optimize)
 
 
-def _fmt_knobs(names, values) -> str:
-    return ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
-
-
-def _print_plan(setup, records, out) -> None:
-    c = setup.config
-    names, bounds = c.knob_names, c.bounds()
-    m = c.machine
-    if m.kind == "sim":
-        machine = f"simulated ring (error seed {m.error_seed}, noise {m.noise:g}, seed {m.seed})"
-    else:
-        machine = f"EPICS (objective PV {c.objective.pv})"
-    now = setup.machine.get().tolist()
-    from pigp_torch.loop import effective_max_step
-
-    limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
-    print(f"plan: {c.method.name} on the {machine}", file=out)
-    print(
-        f"  budget {c.budget} evaluations, {'maximize' if c.objective.maximize else 'minimize'}"
-        f" the objective, options {c.method.options or '{}'}, seed {c.method.seed}",
-        file=out,
-    )
-    print(f"  {'knob':<14}{'lower':>12}{'upper':>12}{'now':>12}{'max step':>12}", file=out)
-    for i, n in enumerate(names):
-        step = "none" if limit is None else f"{float(limit[i]):.4g}"
-        print(
-            f"  {n:<14}{float(bounds[0, i]):>12.4g}{float(bounds[1, i]):>12.4g}"
-            f"{now[i]:>12.4g}{step:>12}",
-            file=out,
-        )
-    floor = "none" if c.objective_floor is None else f"{c.objective_floor:g}"
-    print(
-        f"  at the end: restore {c.restore}; read retries {c.read_retries}; objective floor "
-        f"{floor}",
-        file=out,
-    )
-    if setup.prior_info:
-        p = setup.prior_info
-        print(f"  prior {p['path']} (sha256 {p['sha256'][:16]}…)", file=out)
-    if records is not None:
-        print(
-            f"  resume {records.path}: {records.n_evaluations} logged evaluations, continue "
-            f"at step {records.n_evaluations}",
-            file=out,
-        )
-    else:
-        print(f"  run log {c.log}", file=out)
-
-
-def _say(out, text: str = "") -> None:
-    """Print a line; a closed terminal (SIGHUP, SSH dropped) never stops the run or the restore."""
-    with contextlib.suppress(OSError, ValueError):
-        print(text, file=out, flush=True)
-
-
-def _print_summary(path: Path, out) -> dict | None:
-    """Print how the run ended (from the log's last end record); returns that record."""
-    from pigp_torch.runlog import read_log
-
-    records = read_log(path)
-    end = records.last_end
-    if end is None:
-        return None
-    names = records.knob_names
-    _say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
-    start = records.starts[-1] if records.starts else {}
-    session = records.n_evaluations - int(start.get("first_step", 0))
-    _say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
-    best = end.get("best")
-    if best:
-        _say(
-            out,
-            f"best y = {best['y']:.6g} at evaluation {best['step'] + 1}: "
-            f"{_fmt_knobs(names, best['x'])}",
-        )
-    final = end.get("final_knobs")
-    if end.get("restored") is False:
-        last = end.get("last_setpoint")
-        _say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
-                  "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
-        if isinstance(last, list):
-            _say(out, f"last setpoint written: {_fmt_knobs(names, last)}")
-        if isinstance(final, list):
-            _say(out, f"readback now: {_fmt_knobs(names, final)}")
-        elif final is not None:
-            _say(out, f"readback now: {final}")
-    elif isinstance(final, list):
-        _say(
-            out, f"knobs restored to {end.get('restored_to')}, readback: {_fmt_knobs(names, final)}"
-        )
-    elif final is not None:
-        _say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
-    _say(out, f"run log: {path}")
-    return end
-
-
-def _print_resume_state(setup, records, out) -> None:
-    """Where the knobs stand against the restore target (the first start's initial knobs) and
-    the last commanded setting, and how many ramp steps away they are."""
-    import torch
-
-    from pigp_torch.loop import effective_max_step
-
-    initial = records.initial_knobs
-    if initial is None:
-        return
-    names = setup.config.knob_names
-    now = setup.machine.get().tolist()
-    intent = records.last_intent
-    last = intent["x"] if intent else None
-    _say(out, "resume: the knobs now against the initial knobs of the first start (the restore "
-              "target) and the last setting commanded before the stop:")  # fmt: skip
-    head = f"  {'knob':<14}{'initial':>12}{'now':>12}{'now-initial':>13}"
-    _say(out, head + (f"{'last commanded':>16}" if last else ""))
-    for i, n in enumerate(names):
-        line = f"  {n:<14}{initial[i]:>12.6g}{now[i]:>12.6g}{now[i] - initial[i]:>13.4g}"
-        _say(out, line + (f"{last[i]:>16.6g}" if last else ""))
-    bounds = setup.config.bounds()
-    limit = effective_max_step(setup.machine, bounds, setup.config.machine_max_step())
-    delta = torch.tensor(now, dtype=torch.float64) - torch.tensor(initial, dtype=torch.float64)
-    if not bool(delta.abs().max() > 0):
-        _say(out, "  the knobs stand at the initial knobs")
-    elif limit is not None:
-        steps = math.ceil(float((delta.abs() / limit).max()))
-        _say(out, f"  the knobs are {steps} step limit(s) from the initial knobs; the restore "
-                  "at the end ramps there within the step limit")  # fmt: skip
-    if last is not None:
-        at = max(abs(a - b) for a, b in zip(now, last, strict=True))
-        where = "at" if at <= 1e-12 else f"{at:.3g} (largest knob difference) from"
-        _say(out, f"  the knobs stand {where} the last commanded setting ({intent['purpose']})")
-
-
 def _locks(config, log_path: Path):
     """The run's locks, not yet taken: the log's, then one per PV prefix (EPICS)."""
     from pigp_torch.runlock import log_lock, machine_locks
@@ -299,7 +173,7 @@ def cmd_optimize(args) -> int:
         with holding(locks) as taken:
             for lock in taken:
                 if lock.stale:
-                    _say(sys.stderr, f"note: took over the stale lock {lock.path} of PID "
+                    say(sys.stderr, f"note: took over the stale lock {lock.path} of PID "
                                      f"{lock.stale.get('pid')} on {lock.stale.get('host')} "
                                      "(no longer running)")  # fmt: skip
             if args.dry_run:  # the locks were free; a dry run does not keep them
@@ -316,16 +190,16 @@ def cmd_optimize(args) -> int:
                         "continue"
                     )
             if from_header:
-                _say(out, f"configuration from the log header of {args.resume} (sha256 "
+                say(out, f"configuration from the log header of {args.resume} (sha256 "
                           "verified); safety limits used:")  # fmt: skip
                 for line in config.safety_lines():
-                    _say(out, f"  {line}")
+                    say(out, f"  {line}")
             for warning in config.warnings():
-                _say(sys.stderr, f"warning: {warning}")
+                say(sys.stderr, f"warning: {warning}")
             try:
                 setup = build_run(config)  # the machine is constructed (connected) last
             except MachineError as err:
-                _say(sys.stderr, f"pigp optimize: could not connect to the machine: {err}")
+                say(sys.stderr, f"pigp optimize: could not connect to the machine: {err}")
                 return EXIT_STOPPED
             try:
                 log_lock = None if args.dry_run else taken[0]
@@ -335,7 +209,7 @@ def cmd_optimize(args) -> int:
                 if callable(close):
                     close()
     except LockHeld as err:
-        _say(sys.stderr, f"pigp optimize: refused: {err}")
+        say(sys.stderr, f"pigp optimize: refused: {err}")
         return EXIT_LOCKED
 
 
@@ -348,10 +222,10 @@ def _run(args, setup, records, log_lock) -> int:
     config = setup.config
     out = sys.stdout
     if args.dry_run:
-        _print_plan(setup, records, out)
+        print_plan(setup, records, out)
         if records is not None:
-            _print_resume_state(setup, records, out)
-        _say(out, "dry run: nothing was moved or written")
+            print_resume_state(setup, records, out)
+        say(out, "dry run: nothing was moved or written")
         return EXIT_OK
 
     if records is not None:
@@ -361,9 +235,9 @@ def _run(args, setup, records, log_lock) -> int:
         )
     else:
         log = RunLog.create(config.log, setup.header(), lock=log_lock)
-    _print_plan(setup, records, out)
+    print_plan(setup, records, out)
     if records is not None:
-        _print_resume_state(setup, records, out)
+        print_resume_state(setup, records, out)
     with contextlib.suppress(OSError, ValueError):
         out.flush()
     from pigp_torch.progress import ProgressLine
@@ -374,14 +248,14 @@ def _run(args, setup, records, log_lock) -> int:
         config.budget, config.knob_names, maximize=config.objective.maximize, unit=unit, out=out
     )
     if records is not None and records.evaluations:
-        _say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
+        say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
         report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
     dashboard = None
     if getattr(args, "dashboard", False):
         from pigp_torch.dashboard import Dashboard
 
         dashboard = Dashboard(log.path, port=args.dashboard_port)
-        _say(out, f"dashboard: {dashboard.url} (while the run goes)")
+        say(out, f"dashboard: {dashboard.url} (while the run goes)")
     code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
@@ -389,20 +263,20 @@ def _run(args, setup, records, log_lock) -> int:
     except KeyboardInterrupt as err:
         signum = err.signum if isinstance(err, Terminated) else signal.SIGINT
         code = 128 + int(signum)
-        _say(sys.stderr, f"pigp optimize: interrupted ({type(err).__name__}: "
+        say(sys.stderr, f"pigp optimize: interrupted ({type(err).__name__}: "
                          f"{signal.Signals(signum).name})")  # fmt: skip
     except (MachineError, RunAborted) as err:
-        _say(sys.stderr, f"pigp optimize: run aborted: {type(err).__name__}: {err}")
+        say(sys.stderr, f"pigp optimize: run aborted: {type(err).__name__}: {err}")
     except Exception as err:  # a refused setting, a bug: the loop has restored the knobs
-        _say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
+        say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()
         if dashboard is not None:
             dashboard.close()
-        end = _print_summary(log.path, out)
+        end = print_summary(log.path, out)
         with contextlib.suppress(OSError, ValueError):
             out.flush()
     if end is not None and end.get("restored") is False:
-        _say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
+        say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
         return EXIT_NOT_RESTORED
     return code

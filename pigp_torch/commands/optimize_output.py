@@ -1,0 +1,138 @@
+r"""What ``pigp optimize`` prints: the plan of a run (``--dry-run``), where a resumed run stands,
+and the summary of a run log."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from pathlib import Path
+
+
+def fmt_knobs(names, values) -> str:
+    return ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
+
+
+def print_plan(setup, records, out) -> None:
+    c = setup.config
+    names, bounds = c.knob_names, c.bounds()
+    m = c.machine
+    if m.kind == "sim":
+        machine = f"simulated ring (error seed {m.error_seed}, noise {m.noise:g}, seed {m.seed})"
+    else:
+        machine = f"EPICS (objective PV {c.objective.pv})"
+    now = setup.machine.get().tolist()
+    from pigp_torch.loop import effective_max_step
+
+    limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
+    print(f"plan: {c.method.name} on the {machine}", file=out)
+    print(
+        f"  budget {c.budget} evaluations, {'maximize' if c.objective.maximize else 'minimize'}"
+        f" the objective, options {c.method.options or '{}'}, seed {c.method.seed}",
+        file=out,
+    )
+    print(f"  {'knob':<14}{'lower':>12}{'upper':>12}{'now':>12}{'max step':>12}", file=out)
+    for i, n in enumerate(names):
+        step = "none" if limit is None else f"{float(limit[i]):.4g}"
+        print(
+            f"  {n:<14}{float(bounds[0, i]):>12.4g}{float(bounds[1, i]):>12.4g}"
+            f"{now[i]:>12.4g}{step:>12}",
+            file=out,
+        )
+    floor = "none" if c.objective_floor is None else f"{c.objective_floor:g}"
+    print(
+        f"  at the end: restore {c.restore}; read retries {c.read_retries}; objective floor "
+        f"{floor}",
+        file=out,
+    )
+    if setup.prior_info:
+        p = setup.prior_info
+        print(f"  prior {p['path']} (sha256 {p['sha256'][:16]}…)", file=out)
+    if records is not None:
+        print(
+            f"  resume {records.path}: {records.n_evaluations} logged evaluations, continue "
+            f"at step {records.n_evaluations}",
+            file=out,
+        )
+    else:
+        print(f"  run log {c.log}", file=out)
+
+
+def say(out, text: str = "") -> None:
+    """Print a line; a closed terminal (SIGHUP, SSH dropped) never stops the run or the restore."""
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=out, flush=True)
+
+
+def print_summary(path: Path, out) -> dict | None:
+    """Print how the run ended (from the log's last end record); returns that record."""
+    from pigp_torch.runlog import read_log
+
+    records = read_log(path)
+    end = records.last_end
+    if end is None:
+        return None
+    names = records.knob_names
+    say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
+    start = records.starts[-1] if records.starts else {}
+    session = records.n_evaluations - int(start.get("first_step", 0))
+    say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
+    best = end.get("best")
+    if best:
+        say(
+            out,
+            f"best y = {best['y']:.6g} at evaluation {best['step'] + 1}: "
+            f"{fmt_knobs(names, best['x'])}",
+        )
+    final = end.get("final_knobs")
+    if end.get("restored") is False:
+        last = end.get("last_setpoint")
+        say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
+                  "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
+        if isinstance(last, list):
+            say(out, f"last setpoint written: {fmt_knobs(names, last)}")
+        if isinstance(final, list):
+            say(out, f"readback now: {fmt_knobs(names, final)}")
+        elif final is not None:
+            say(out, f"readback now: {final}")
+    elif isinstance(final, list):
+        say(out, f"knobs restored to {end.get('restored_to')}, readback: {fmt_knobs(names, final)}")
+    elif final is not None:
+        say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
+    say(out, f"run log: {path}")
+    return end
+
+
+def print_resume_state(setup, records, out) -> None:
+    """Where the knobs stand against the restore target (the first start's initial knobs) and
+    the last commanded setting, and how many ramp steps away they are."""
+    import torch
+
+    from pigp_torch.loop import effective_max_step
+
+    initial = records.initial_knobs
+    if initial is None:
+        return
+    names = setup.config.knob_names
+    now = setup.machine.get().tolist()
+    intent = records.last_intent
+    last = intent["x"] if intent else None
+    say(out, "resume: the knobs now against the initial knobs of the first start (the restore "
+              "target) and the last setting commanded before the stop:")  # fmt: skip
+    head = f"  {'knob':<14}{'initial':>12}{'now':>12}{'now-initial':>13}"
+    say(out, head + (f"{'last commanded':>16}" if last else ""))
+    for i, n in enumerate(names):
+        line = f"  {n:<14}{initial[i]:>12.6g}{now[i]:>12.6g}{now[i] - initial[i]:>13.4g}"
+        say(out, line + (f"{last[i]:>16.6g}" if last else ""))
+    bounds = setup.config.bounds()
+    limit = effective_max_step(setup.machine, bounds, setup.config.machine_max_step())
+    delta = torch.tensor(now, dtype=torch.float64) - torch.tensor(initial, dtype=torch.float64)
+    if not bool(delta.abs().max() > 0):
+        say(out, "  the knobs stand at the initial knobs")
+    elif limit is not None:
+        steps = math.ceil(float((delta.abs() / limit).max()))
+        say(out, f"  the knobs are {steps} step limit(s) from the initial knobs; the restore "
+                  "at the end ramps there within the step limit")  # fmt: skip
+    if last is not None:
+        at = max(abs(a - b) for a, b in zip(now, last, strict=True))
+        where = "at" if at <= 1e-12 else f"{at:.3g} (largest knob difference) from"
+        say(out, f"  the knobs stand {where} the last commanded setting ({intent['purpose']})")
