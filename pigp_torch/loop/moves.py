@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 
 from pigp_torch._utils import DTYPE, max_step_tensor
-from pigp_torch.machine.base import check_setting
+from pigp_torch.machine.base import check_setting, ramp_steps
 from pigp_torch.machine.errors import MachineError, ReadError
 
 #: Ramp steps are planned at this fraction of the step limit: a machine that measures the step
@@ -43,21 +43,17 @@ def move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool, on_set=Non
     """
     target = check_setting(target, bounds)
     previous = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
-    n = 1
-    if ramp and limit is not None:
-        planned = limit * RAMP_FRACTION
-        n = max(1, math.ceil(float(((target - previous).abs() / planned).max()) - 1e-9))
-    start, delta = previous.clone(), target - previous
-    for k in range(1, n + 1):
-        x = target if k == n else start + delta * (k / n)
+    planned = limit * RAMP_FRACTION if ramp and limit is not None else None
+    steps = ramp_steps(previous, target, planned)
+    for k, x in enumerate(steps, start=1):
         # intermediate points are convex combinations; the clamp only removes round-off
         x = torch.minimum(torch.maximum(x, bounds[0]), bounds[1])
         x = check_setting(x, bounds, current=previous, max_step=limit)
         if on_set is not None:
-            on_set(x, k, n)
+            on_set(x, k, len(steps))
         machine.set(x.clone())
         previous = x
-    return n
+    return len(steps)
 
 
 def verify_readback(machine, target: torch.Tensor, bounds, readback_tol: float) -> torch.Tensor:

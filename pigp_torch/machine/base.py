@@ -131,23 +131,31 @@ class GuardedMachine:
         raise NotImplementedError
 
 
-def ramp(machine: Machine, target) -> int:
-    r"""Move ``machine`` to ``target`` in equal steps that respect its ``max_step`` (if any).
+def ramp_steps(current: torch.Tensor, target: torch.Tensor, limit) -> list[torch.Tensor]:
+    r"""The settings of a straight-line move from ``current`` to ``target`` within ``limit``.
 
-    With per-knob limit :math:`m` the move :math:`\Delta = x_\mathrm{target} - x` is split into
-    :math:`n = \lceil \max_i |\Delta_i| / m_i \rceil` equal steps (one ``set`` when there is no
-    limit). Intermediate points lie on the segment, hence inside the (convex) bounds.
+    With per-knob limit :math:`m` (``d`` tensor, or ``None``: one step) the move
+    :math:`\Delta = x_\mathrm{target} - x` is split into
+    :math:`n = \lceil \max_i |\Delta_i| / m_i \rceil` equal steps; the last one is ``target``
+    exactly. Intermediate points lie on the segment, hence inside the (convex) bounds.
+    """
+    delta = target - current
+    n = 1
+    if limit is not None:
+        n = max(1, math.ceil(float((delta.abs() / limit).max()) - 1e-9))
+    return [target if k == n else current + delta * (k / n) for k in range(1, n + 1)]
+
+
+def ramp(machine: Machine, target) -> int:
+    r"""Move ``machine`` to ``target`` in equal steps that respect its ``max_step`` (if any):
+    the settings of :func:`ramp_steps`, one ``set`` each.
 
     Returns:
         the number of ``set`` calls made.
     """
     target = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
     current = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
-    delta = target - current
-    limit = getattr(machine, "max_step", None)
-    n = 1
-    if limit is not None:
-        n = max(1, math.ceil(float((delta.abs() / limit).max()) - 1e-9))
-    for k in range(1, n + 1):
-        machine.set(target if k == n else current + delta * (k / n))
-    return n
+    steps = ramp_steps(current, target, getattr(machine, "max_step", None))
+    for x in steps:
+        machine.set(x)
+    return len(steps)
