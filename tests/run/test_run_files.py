@@ -278,7 +278,7 @@ def test_the_example_run_files_are_valid(name):
     """The documented examples validate; their paths resolve next to the examples folder."""
     from pathlib import Path
 
-    folder = Path(__file__).resolve().parents[1] / "examples"
+    folder = Path(__file__).resolve().parents[2] / "examples"
     cfg = load_config(folder / name)
     assert cfg.log.resolve().parent == folder.parent / "runs"
     assert cfg.machine.kind == name.split("_")[1].split(".")[0]
