@@ -28,7 +28,7 @@ def plugin_root() -> Path:
     ``pigp_physics`` generator with Xopt (and so with Badger)."""
     import pigp_torch.integrations.xopt_physics  # noqa: F401  (registration)
 
-    return Path(__file__).parent / "badger_plugins"
+    return Path(__file__).resolve().parents[1] / "badger_plugins"  # pigp_torch/badger_plugins
 
 
 def install_plugins(root: str | Path) -> Path:

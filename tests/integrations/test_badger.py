@@ -78,3 +78,16 @@ def test_a_badger_routine_runs_pigp_physics_over_channel_access(tmp_path):
     assert result["n"] == 4 and all(0 < y < 10 for y in result["y"])
     assert result["max_move"] <= 0.05 * 60 + 1e-6  # the step limit, 3 A
     assert result["told"] >= 3
+
+
+def test_plugin_root_holds_the_shipped_environment(tmp_path):
+    """plugin_root() names the package's badger_plugins folder (with the pigp_sim environment)
+    and install_plugins copies that environment into another root, once."""
+    import pigp_torch.integrations.badger as pb
+
+    env = pb.plugin_root() / "environments" / "pigp_sim"
+    assert (env / "__init__.py").is_file()
+    copied = pb.install_plugins(tmp_path)
+    assert (copied / "__init__.py").read_text() == (env / "__init__.py").read_text()
+    with pytest.raises(FileExistsError):
+        pb.install_plugins(tmp_path)
