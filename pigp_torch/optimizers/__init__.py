@@ -7,7 +7,8 @@ from pigp_torch.optimizers.nelder_mead import NelderMead
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.optimizers.rcds import RCDS
 
-#: Registry used by the CLI and configuration files.
+#: The generic optimizer classes by their ``name`` (the methods that run files, the benchmark and
+#: the CLI name are in :mod:`pigp_torch.methods`).
 OPTIMIZERS = {
     BayesOpt.name: BayesOpt,
     NelderMead.name: NelderMead,
