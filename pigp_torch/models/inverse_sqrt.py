@@ -338,34 +338,6 @@ class InverseSqrtPeakModel:
             pen = pen + (theta[self._s_index :] ** 2).sum() / self.shape_std**2
         return 0.5 * (r**2).sum() + 0.5 * pen
 
-    def _neg_log_post_and_grad(self, theta: Tensor, X: Tensor, Y: Tensor):
-        r""":meth:`_neg_log_post` and its gradient in closed form (no autograd):
-        :math:`\nabla = -J^\top r / \sigma_n + \tfrac12 \nabla\text{pen}` with :math:`J`
-        the analytic :meth:`jacobian` and :math:`r = (Y - f)/\sigma_n`."""
-        d = self.dim
-        r = (Y - self.form(X, theta)) / self.noise
-        grad = -(self.jacobian(X, theta).T @ r) / self.noise
-        dmu = theta[:d] - self.center0
-        if self.center_cov is None:
-            w = dmu / self.tau**2
-        else:
-            w = self.center_precision @ dmu
-        pen = dmu @ w
-        grad[:d] += w
-        z = (theta[d] - self.log_c_model) / self.log_c_std
-        pen = pen + z**2
-        grad[d] += z / self.log_c_std
-        pen = pen + (theta[d + 1] / self.log_beta_std) ** 2
-        grad[d + 1] += theta[d + 1] / self.log_beta_std**2
-        if self.f_inf_std > 0:
-            pen = pen + (theta[d + 2] / self.f_inf_std) ** 2
-            grad[d + 2] += theta[d + 2] / self.f_inf_std**2
-        if self.shape_std > 0:
-            s = theta[self._s_index :]
-            pen = pen + (s**2).sum() / self.shape_std**2
-            grad[self._s_index :] += s / self.shape_std**2
-        return 0.5 * (r**2).sum() + 0.5 * pen, grad
-
     def _linear_start(self, X: Tensor, Y: Tensor) -> Tensor | None:
         r"""Weighted least squares of :math:`g_i - \mathbf x_i^\top B\mathbf x_i = a +
         \mathbf w^\top\mathbf x_i` (:math:`\beta=1`); weights from the delta method,
@@ -416,12 +388,13 @@ class InverseSqrtPeakModel:
             scale[: self.dim] = self.tau
         scale_np = scale.numpy()
 
+        objective = _NumpyObjective(self, X, Y)
+
         def value_and_grad(z: np.ndarray) -> tuple[float, np.ndarray]:
-            with torch.no_grad():
-                v, grad = self._neg_log_post_and_grad(torch.from_numpy(z) * scale, X, Y)
-            if not (torch.isfinite(v) and torch.isfinite(grad).all()):
+            v, grad = objective(z * scale_np)
+            if not (np.isfinite(v) and np.isfinite(grad).all()):
                 return 1e30, np.zeros_like(z)
-            return float(v.detach()), (grad * scale).numpy()
+            return v, grad * scale_np
 
         best = None
         for t0 in starts:
@@ -491,3 +464,138 @@ class InverseSqrtPeakModel:
             V = torch.cholesky_solve(Ks.transpose(-1, -2), self._L)
             var = var + self.residual_std**2 - (Ks * V.transpose(-1, -2)).sum(-1)
         return mu, var.clamp_min(1e-18).sqrt()
+
+    def predict_with_grad(self, X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        r""":meth:`predict` and its gradients in ``X`` in closed form (no autograd graph):
+        ``(mu, sd, dmu, dsd)``, ``n``, ``n``, ``n x d``, ``n x d``.
+
+        With :math:`\mathbf D = \mathbf x - \hat{\boldsymbol\mu}`, :math:`g = c + \beta
+        \mathbf D^\top B\mathbf D` and :math:`\mathbf w = C\,\mathbf j` (:math:`\mathbf j`
+        the row of :meth:`jacobian`):
+
+        .. math::
+            \nabla f = -\beta g^{-3/2} B\mathbf D, \qquad
+            \nabla(\mathbf j^\top C\mathbf j) = 2 \sum_k w_k \nabla j_k,
+
+        :math:`\nabla j_k` from :math:`j_k = -\tfrac12 g^{-3/2}\,\partial g/\partial\theta_k`
+        (:math:`\nabla g^{-3/2} = -3\beta g^{-5/2} B\mathbf D`). The residual GP adds
+        :math:`\nabla k_i = -k_i P(\mathbf x - \mathbf x_i)` to the mean (weights
+        :math:`\alpha`) and :math:`-2\sum_i u_i \nabla k_i`, :math:`\mathbf u = K^{-1}\mathbf
+        k`, to the variance; :math:`\nabla\sigma = \nabla\sigma^2 / (2\sigma)` (zero where the
+        variance sits at its floor)."""
+        theta = self._fitted()
+        d = self.dim
+        B = self.shape(theta)
+        D = X - theta[:d]
+        BD = D @ B
+        q = (BD * D).sum(-1)
+        c, beta = torch.exp(theta[d]), torch.exp(theta[d + 1])
+        g = c + beta * q
+        g15 = g**-1.5
+        mu = self.background(theta) + torch.rsqrt(g)
+        dmu = -(beta * g15).unsqueeze(-1) * BD
+        J = self.jacobian(X, theta)
+        W = J @ self.cov  # n x p
+        var = (W * J).sum(-1)
+        # phys: the entries j_k = dfdg * dg_k (all but the background's j = 1)
+        dfdg = -0.5 * g15
+        dg_mu = -2.0 * beta * BD
+        wdg = (W[..., :d] * dg_mu).sum(-1) + W[..., d] * c + W[..., d + 1] * beta * q
+        grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
+        inner = -2.0 * beta * (W[..., :d] @ B) + (2.0 * beta * W[..., d + 1]).unsqueeze(-1) * BD
+        if self.shape_std > 0:
+            s = theta[self._s_index : self._s_index + d]
+            lam = self._lam * torch.exp(s)
+            Ws = W[..., self._s_index : self._s_index + d]
+            wdg = wdg + (Ws * beta * (D @ self._V) ** 2 * lam).sum(-1)
+            grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
+            inner = inner + 2.0 * beta * ((Ws * lam * (D @ self._V)) @ self._V.T)
+        dvar = 2.0 * (grad_v + dfdg.unsqueeze(-1) * inner)
+        if self.residual_std > 0:
+            Ks = self._k_res(X, self._X)  # n x m
+            Dr = X.unsqueeze(-2) - self._X  # n x m x d
+            PDr = Dr @ self._res_prec
+            mu = mu + Ks @ self._alpha
+            dmu = dmu - ((Ks * self._alpha).unsqueeze(-1) * PDr).sum(-2)
+            U = torch.cholesky_solve(Ks.transpose(-1, -2), self._L).transpose(-1, -2)
+            var = var + self.residual_std**2 - (Ks * U).sum(-1)
+            dvar = dvar + 2.0 * ((U * Ks).unsqueeze(-1) * PDr).sum(-2)
+        floor = var <= 1e-18
+        sd = var.clamp_min(1e-18).sqrt()
+        dsd = torch.where(floor.unsqueeze(-1), 0.0, dvar / (2 * sd).unsqueeze(-1))
+        return mu, sd, dmu, dsd
+
+
+class _NumpyObjective:
+    r"""The negative log posterior :meth:`InverseSqrtPeakModel._neg_log_post` and its gradient
+    in closed form, in NumPy, for the L-BFGS-B fit:
+    :math:`\nabla = -J^\top \mathbf r / \sigma_n + \tfrac12 \nabla\text{pen}`, :math:`J` as in
+    :meth:`InverseSqrtPeakModel.jacobian` and :math:`\mathbf r = (\mathbf y - f)/\sigma_n`.
+
+    The arrays have 13-100 entries: at these sizes each torch call costs more
+    than its arithmetic, and the fit evaluates it hundreds of times an ask.
+    A test checks it against the torch version to round-off."""
+
+    def __init__(self, model: InverseSqrtPeakModel, X: Tensor, Y: Tensor) -> None:
+        self.d = model.dim
+        self.X, self.Y = X.numpy(), Y.numpy()
+        self.noise = model.noise
+        self.center0 = model.center0.numpy()
+        self.P = None if model.center_cov is None else model.center_precision.numpy()
+        self.tau2 = (model.tau**2).numpy()
+        self.log_c_model, self.log_c_std = model.log_c_model, model.log_c_std
+        self.log_beta_std = model.log_beta_std
+        self.f_inf, self.f_inf_std = model.f_inf, model.f_inf_std
+        self.shape_std, self.s_index = model.shape_std, model._s_index
+        if self.shape_std > 0:
+            self.lam, self.V = model._lam.numpy(), model._V.numpy()
+        else:
+            self.B = model.B.numpy()
+
+    def __call__(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        with np.errstate(all="ignore"):  # an overflow gives inf/nan: the caller rejects it
+            return self._evaluate(theta)
+
+    def _evaluate(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        d = self.d
+        mu, log_c, log_beta = theta[:d], theta[d], theta[d + 1]
+        c, beta = np.exp(log_c), np.exp(log_beta)
+        D = self.X - mu
+        if self.shape_std > 0:
+            s = theta[self.s_index : self.s_index + d]
+            lam = self.lam * np.exp(s)
+            DV = D @ self.V
+            BD = (DV * lam) @ self.V.T
+        else:
+            BD = D @ self.B
+        q = (BD * D).sum(-1)
+        g = c + beta * q
+        background = self.f_inf + (theta[d + 2] if self.f_inf_std > 0 else 0.0)
+        r = (self.Y - background - g**-0.5) / self.noise
+        # d(0.5 |r|^2)/d theta = -r/noise . df/dtheta, df/dg = -0.5 g^-1.5
+        a = -(r / self.noise) * (-0.5 * g**-1.5)  # n: weight of dg/dtheta
+        grad = np.empty_like(theta)
+        grad[:d] = -2.0 * beta * (a @ BD)
+        grad[d] = c * a.sum()
+        grad[d + 1] = beta * (a @ q)
+        if self.f_inf_std > 0:
+            grad[d + 2] = -(r / self.noise).sum()
+        if self.shape_std > 0:
+            grad[self.s_index : self.s_index + d] = beta * (a @ (DV**2)) * lam
+        dmu = mu - self.center0
+        w = dmu / self.tau2 if self.P is None else self.P @ dmu
+        pen = dmu @ w
+        grad[:d] += w
+        z = (log_c - self.log_c_model) / self.log_c_std
+        pen += z**2
+        grad[d] += z / self.log_c_std
+        pen += (log_beta / self.log_beta_std) ** 2
+        grad[d + 1] += log_beta / self.log_beta_std**2
+        if self.f_inf_std > 0:
+            pen += (theta[d + 2] / self.f_inf_std) ** 2
+            grad[d + 2] += theta[d + 2] / self.f_inf_std**2
+        if self.shape_std > 0:
+            s = theta[self.s_index :]
+            pen += (s**2).sum() / self.shape_std**2
+            grad[self.s_index :] += s / self.shape_std**2
+        return float(0.5 * (r**2).sum() + 0.5 * pen), grad

@@ -196,6 +196,18 @@ class PhysicsModelBO(AskTellOptimizer):
         beta = self.beta if beta is None else beta
         return mu + math.sqrt(beta) * sd if beta > 0 else mu
 
+    def acquisition_with_grad(
+        self, X: torch.Tensor, beta: float | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`acquisition` at ``n x d`` settings and its ``n x d`` gradient in closed form
+        (:meth:`~pigp_torch.models.InverseSqrtPeakModel.predict_with_grad`)."""
+        mu, sd, dmu, dsd = self.model.predict_with_grad(X)
+        beta = self.beta if beta is None else beta
+        if beta <= 0:
+            return mu, dmu
+        root = math.sqrt(beta)
+        return mu + root * sd, dmu + root * dsd
+
     def centre_information(self, X: torch.Tensor) -> torch.Tensor:
         r"""Reduction of :math:`\mathrm{tr}(B\,C_\mu)` by one more reading at each of ``n x d``
         settings (after a fit), :math:`C_\mu` the Laplace covariance of the fitted centre.
@@ -232,12 +244,13 @@ class PhysicsModelBO(AskTellOptimizer):
         inform = not exploit and self.info_every > 0 and self.n_told % self.info_every == 0
         beta = 0.0 if exploit else self.beta
         x, value = find_optimum(
-            self.centre_information if inform else (lambda Z: self.acquisition(Z, beta)),
+            self.centre_information if inform else (lambda Z: self.acquisition_with_grad(Z, beta)),
             box,
             n_starts=self.n_starts,
             seed=self.seed + self.n_told,
             x_init=torch.stack([center, torch.minimum(torch.maximum(fitted, box[0]), box[1])]),
             maxiter=200,
+            with_grad=not inform,
         )
         x = torch.minimum(torch.maximum(x, box[0]), box[1])  # guard against round-off
         self.last_info = {
