@@ -31,14 +31,15 @@ Fit (MAP, Gaussian noise of known :math:`\sigma_n` on :math:`f`):
     + \tfrac12\Big\|\tfrac{\boldsymbol\mu - \boldsymbol\mu_0}{\tau\,\mathbf h}\Big\|^2
     + \tfrac{(\log c - \log c_m)^2}{2 s_c^2} + \tfrac{(\log\beta)^2}{2 s_\beta^2},
 
-(:math:`\mathbf h` the knob half-ranges, :math:`\boldsymbol\mu_0` the box centre) by L-BFGS-B from
-several starts: the previous fit, the prior mean, and the weighted linear least-squares solution
-of :math:`g_i - \mathbf x_i^\top B \mathbf x_i = a + \mathbf w^\top \mathbf x_i` (exact for
-:math:`\beta = 1`). Uncertainty: the Laplace (Gauss-Newton) covariance :math:`C` of
-:math:`\hat\theta`, propagated to :math:`f` by the Jacobian :math:`J(\mathbf x) = \partial f /
-\partial\theta`. What the form misses is modelled by a residual GP (zero mean, fixed full-precision
-RBF kernel with the *machine-scale* precision :math:`\hat\beta B / (2\hat c)`, i.e. the
-physics-informed kernel at the fitted optimum, amplitude ``residual_std``) conditioned on the
+(:math:`\mathbf h` the knob half-ranges, :math:`\boldsymbol\mu_0` the box centre unless
+given) by L-BFGS-B from several starts: the previous fit, the prior mean, and the weighted
+linear least-squares solution of :math:`g_i - \mathbf x_i^\top B \mathbf x_i = a +
+\mathbf w^\top \mathbf x_i` (exact for :math:`\beta = 1`). Uncertainty: the Laplace
+(Gauss-Newton) covariance :math:`C` of :math:`\hat\theta`, propagated to :math:`f` by the
+Jacobian :math:`J(\mathbf x) = \partial f / \partial\theta`. What the form misses is modelled
+by a residual GP (zero mean, fixed full-precision RBF kernel with the *machine-scale* precision
+:math:`\hat\beta B / (2\hat c)`, i.e. the physics-informed kernel at the fitted optimum,
+amplitude ``residual_std``) conditioned on the
 residuals :math:`y_i - f(\mathbf x_i; \hat\theta)`:
 
 .. math::
@@ -70,6 +71,8 @@ class InverseSqrtPeakModel:
         noise: measurement noise :math:`\sigma_n` of the objective (default: ``prior.noise``).
         center_std: :math:`\tau`, prior std of each centre coordinate in half-ranges (the
             isotropic "box" prior, used when ``center_cov`` is ``None``).
+        center_mean: ``d`` prior mean :math:`\boldsymbol\mu_0` of the centre (knob units;
+            default ``None``: the box centre, i.e. the knobs' zero on a symmetric box).
         center_cov: ``d x d`` covariance :math:`C_e` of machine optima over an ensemble of
             model rings (:attr:`PhysicsPrior.center_cov <pigp_torch.prior.PhysicsPrior>`); the
             centre prior is then :math:`\mathcal N(\boldsymbol\mu_0, C_\mu)` with
@@ -114,6 +117,7 @@ class InverseSqrtPeakModel:
         residual_std: float = 0.05,
         f_inf_std: float = 0.0,
         center_cov=None,
+        center_mean=None,
         center_cov_scale: float = 3.0,
         center_floor_std: float = 0.22,
         shape=None,
@@ -157,6 +161,10 @@ class InverseSqrtPeakModel:
             self._lam, self._V = torch.linalg.eigh(self.B)
         lower, upper = self.bounds
         self.center0 = (upper + lower) / 2
+        if center_mean is not None:
+            self.center0 = torch.as_tensor(center_mean, dtype=DTYPE).reshape(-1).clone()
+            if self.center0.shape != (d,) or not torch.isfinite(self.center0).all():
+                raise ValueError(f"center_mean must be {d} finite values")
         half = (upper - lower) / 2
         self.tau = float(center_std) * half
         self.center_cov = None if center_cov is None else torch.as_tensor(center_cov, dtype=DTYPE)

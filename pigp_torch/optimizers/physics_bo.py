@@ -76,12 +76,27 @@ class PhysicsModelBO(AskTellOptimizer):
             error ensemble, :attr:`prior.peak_shape <pigp_torch.prior.PhysicsPrior>`;
             ``"model"``: the model ring's own, :math:`2 c_m \Sigma`; ``"auto"`` (default): the
             ensemble's when the prior has one.
+        prior_check: test at every ask whether the physics form still explains the readings,
+            and widen the prior once when it does not (default on). The statistic is the
+            misfit of the fitted form (residual GP excluded),
+            :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}` with :math:`\chi^2 = \sum_i (y_i -
+            f(\mathbf x_i;\hat\theta))^2/\sigma_n^2` and :math:`\nu = n - p` (:math:`p`
+            parameters), about :math:`\mathcal N(0, 1)` when the form is right; checked from
+            :math:`n \ge p + 5` readings on. When :math:`z >` ``check_z`` the model is rebuilt
+            with the options of ``relax`` over the given ones (warm-started from the current
+            fit), refitted at once, and a notice (``kind = "prior_rejected"``, with ``z``,
+            ``chi2``, ``nu``, ``n``) goes to :attr:`notices` for the run log and the progress
+            line.
+        check_z: rejection threshold of ``z`` (default 4).
+        relax: model options after a rejection (default :data:`RELAXED_OPTIONS`: the shape's
+            eigen-scales fitted, ``shape_std = 1``; the background fitted, ``f_inf_std = 0.1``;
+            the scale ``log_beta_std = 1``; the centre prior 4x wider in variance).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
-    ``fitted_peak``, ``acq_value``, ``fit_time_s``, ``acq_time_s``.
+    ``fitted_peak``, ``acq_value``, ``misfit_z``, ``relaxed``, ``fit_time_s``, ``acq_time_s``.
     """
 
     name = "pigp-physics"
@@ -105,6 +120,9 @@ class PhysicsModelBO(AskTellOptimizer):
         center_prior: str = "auto",
         shape_prior: str = "auto",
         travel_limit=None,
+        prior_check: bool = True,
+        check_z: float = 4.0,
+        relax: dict | None = None,
         maximize: bool = True,
         **model_options,
     ) -> None:
@@ -119,6 +137,15 @@ class PhysicsModelBO(AskTellOptimizer):
         self.shape_prior = _choose(shape_prior, "shape_prior", "model", prior.peak_shape,
                                    "shape", model_options)  # fmt: skip
         self.model = InverseSqrtPeakModel(prior, self.bounds, **model_options)
+        self.prior = prior
+        self.model_options = dict(model_options)
+        self.prior_check = bool(prior_check)
+        if not (math.isfinite(float(check_z)) and float(check_z) > 0):
+            raise ValueError(f"check_z must be positive and finite, got {check_z}")
+        self.check_z = float(check_z)
+        self.relax = dict(RELAXED_OPTIONS if relax is None else relax)
+        self.relaxed = False
+        self.misfit_z: float | None = None
         self.beta = float(beta)
         self.step_limit = None if step_limit is None else float(step_limit)
         self.n_starts = int(n_starts)
@@ -196,6 +223,46 @@ class PhysicsModelBO(AskTellOptimizer):
         beta = self.beta if beta is None else beta
         return mu + math.sqrt(beta) * sd if beta > 0 else mu
 
+    def misfit(self, X: torch.Tensor, Y: torch.Tensor) -> tuple[float, float, int]:
+        r"""``(z, chi2, nu)`` of the fitted form at the told ``X``, ``Y`` (see ``prior_check``)."""
+        with torch.no_grad():
+            r = (Y - self.model.form(X)) / self.model.noise
+        nu = max(len(Y) - self.model.n_params, 1)
+        chi2 = float((r**2).sum())
+        return (chi2 - nu) / math.sqrt(2.0 * nu), chi2, nu
+
+    def _check_prior(self, X: torch.Tensor, Y: torch.Tensor) -> None:
+        """One step of ``prior_check``: the misfit; on a rejection, relax, refit and notify."""
+        if len(Y) < self.model.n_params + 5:
+            return
+        z, chi2, nu = self.misfit(X, Y)
+        self.misfit_z = z
+        if self.relaxed or z <= self.check_z:
+            return
+        old = self.model
+        options = {**self.model_options, **self.relax}
+        if "center_cov_scale_factor" in options:  # relative widening of the centre prior
+            factor = float(options.pop("center_cov_scale_factor"))
+            options["center_cov_scale"] = factor * float(
+                self.model_options.get("center_cov_scale", 3.0)
+            )
+        self.model = InverseSqrtPeakModel(self.prior, self.bounds, **options)
+        self.model.theta = _extend_theta(old, self.model)
+        self.model.fit(X, Y)
+        self.relaxed = True
+        self.misfit_z, chi2_after, _ = self.misfit(X, Y)
+        self.notify(
+            "prior_rejected",
+            f"physics prior rejected after {len(Y)} readings: the fitted physics form misses "
+            f"them by chi2/nu = {chi2 / nu:.2f} (z = {z:.1f} > {self.check_z:g}); the shape's "
+            "scales, the background and the centre are now fitted with wider priors "
+            f"(chi2/nu = {chi2_after / max(len(Y) - self.model.n_params, 1):.2f} after)",
+            z=z,
+            chi2=chi2,
+            nu=nu,
+            n=len(Y),
+        )
+
     def acquisition_with_grad(
         self, X: torch.Tensor, beta: float | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -232,6 +299,8 @@ class PhysicsModelBO(AskTellOptimizer):
         Y = torch.tensor(self.Y, dtype=DTYPE)
         t0 = time.perf_counter()
         self.model.fit(X, Y)
+        if self.prior_check:
+            self._check_prior(X, Y)
         with torch.no_grad():
             mean, _ = self.model.predict(X)
         center = X[int(mean.argmax())]
@@ -263,10 +332,36 @@ class PhysicsModelBO(AskTellOptimizer):
             "trust_lower": box[0].clone(),
             "trust_upper": box[1].clone(),
             "box_half_width": self.box_half_width,
+            "misfit_z": self.misfit_z,
+            "relaxed": self.relaxed,
             "fit_time_s": t1 - t0,
             "acq_time_s": time.perf_counter() - t1,
         }
         return x
+
+
+#: Model options of :class:`PhysicsModelBO` after its prior check rejected the prior:
+#: the shape's eigen-scales and the background fitted, the scale and the centre freer
+#: (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
+RELAXED_OPTIONS = {
+    "shape_std": 1.0,
+    "f_inf_std": 0.1,
+    "log_beta_std": 1.0,
+    "center_cov_scale_factor": 4.0,
+}
+
+
+def _extend_theta(old: InverseSqrtPeakModel, new: InverseSqrtPeakModel) -> torch.Tensor:
+    r"""``old``'s fitted :math:`\theta` laid out for ``new`` (a background and shape
+    log-scales that ``old`` did not fit start at 0)."""
+    d, theta = old.dim, old.theta
+    out = new.prior_theta().clone()
+    out[: d + 2] = theta[: d + 2]
+    if old.f_inf_std > 0 and new.f_inf_std > 0:
+        out[d + 2] = theta[d + 2]
+    if old.shape_std > 0 and new.shape_std > 0:
+        out[new._s_index :] = theta[old._s_index :]
+    return out
 
 
 def _travel_limit(value, d: int) -> torch.Tensor | None:
