@@ -76,27 +76,43 @@ class PhysicsModelBO(AskTellOptimizer):
             error ensemble, :attr:`prior.peak_shape <pigp_torch.prior.PhysicsPrior>`;
             ``"model"``: the model ring's own, :math:`2 c_m \Sigma`; ``"auto"`` (default): the
             ensemble's when the prior has one.
-        prior_check: test at every ask whether the physics form still explains the readings,
-            and widen the prior once when it does not (default on). The statistic is the
-            misfit of the fitted form (residual GP excluded),
-            :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}` with :math:`\chi^2 = \sum_i (y_i -
-            f(\mathbf x_i;\hat\theta))^2/\sigma_n^2` and :math:`\nu = n - p` (:math:`p`
-            parameters), about :math:`\mathcal N(0, 1)` when the form is right; checked from
-            :math:`n \ge p + 5` readings on. When :math:`z >` ``check_z`` the model is rebuilt
-            with the options of ``relax`` over the given ones (warm-started from the current
-            fit), refitted at once, and a notice (``kind = "prior_rejected"``, with ``z``,
-            ``chi2``, ``nu``, ``n``) goes to :attr:`notices` for the run log and the progress
-            line.
-        check_z: rejection threshold of ``z`` (default 4).
-        relax: model options after a rejection (default :data:`RELAXED_OPTIONS`: the shape's
-            eigen-scales fitted, ``shape_std = 1``; the background fitted, ``f_inf_std = 0.1``;
-            the scale ``log_beta_std = 1``; the centre prior 4x wider in variance).
+        prior_check: test whether the physics prior still explains the readings, and move,
+            for good, to models with wider priors when it does not (default on). The models
+            are the given one (stage 0) and the stages of ``relax``, each a set of options over
+            the given ones. From :math:`n \ge p + 5` readings on (:math:`p` parameters of the
+            current model) two tests run:
+
+            * the misfit of the fitted form at every ask (residual GP excluded),
+              :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}`, :math:`\chi^2 = \sum_i (y_i -
+              f(\mathbf x_i;\hat\theta))^2/\sigma_n^2`, :math:`\nu = n - p`, about
+              :math:`\mathcal N(0, 1)` when the form is right; :math:`z >` ``check_z`` moves
+              to the last stage;
+            * every ``check_every``-th ask the later stages are fitted too and compared with
+              the current one by their Laplace evidence
+              (:meth:`~pigp_torch.models.InverseSqrtPeakModel.log_evidence`); the best of them
+              takes over when it leads by more than ``evidence_margin`` (a wrong scale of the
+              shape leaves the residuals small but needs a :math:`\log\beta` far out in its
+              prior).
+
+            Each move (the new model warm-started from the current fit) writes a notice
+            (``kind = "prior_rejected"``, with ``stage``, ``z``, ``chi2``, ``nu``, ``n``,
+            ``log_evidence_ratio``) to :attr:`notices` for the run log and the progress line.
+        check_z: misfit threshold (default 4).
+        evidence_margin: log-evidence lead that moves to a later stage (default 3 nats, odds
+            of 20 to 1).
+        check_every: period of the evidence comparison in asks (default 3; it costs one more
+            fit per later stage).
+        relax: the stages after the given model (default :data:`RELAXED_STAGES`: first the
+            scale and the background free, ``log_beta_std = 1``, ``f_inf_std = 0.1``; then also
+            the shape's eigen-scales, ``shape_std = 1``, and a centre prior 4x wider in
+            variance).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
-    ``fitted_peak``, ``acq_value``, ``misfit_z``, ``relaxed``, ``fit_time_s``, ``acq_time_s``.
+    ``fitted_peak``, ``acq_value``, ``misfit_z``, ``log_evidence_ratio``, ``relaxed``,
+    ``fit_time_s``, ``acq_time_s``.
     """
 
     name = "pigp-physics"
@@ -122,7 +138,9 @@ class PhysicsModelBO(AskTellOptimizer):
         travel_limit=None,
         prior_check: bool = True,
         check_z: float = 4.0,
-        relax: dict | None = None,
+        evidence_margin: float = 3.0,
+        check_every: int = 3,
+        relax=None,
         maximize: bool = True,
         **model_options,
     ) -> None:
@@ -143,9 +161,19 @@ class PhysicsModelBO(AskTellOptimizer):
         if not (math.isfinite(float(check_z)) and float(check_z) > 0):
             raise ValueError(f"check_z must be positive and finite, got {check_z}")
         self.check_z = float(check_z)
-        self.relax = dict(RELAXED_OPTIONS if relax is None else relax)
-        self.relaxed = False
+        if not (math.isfinite(float(evidence_margin)) and float(evidence_margin) >= 0):
+            raise ValueError(f"evidence_margin must be >= 0 and finite, got {evidence_margin}")
+        self.evidence_margin = float(evidence_margin)
+        if int(check_every) < 1:
+            raise ValueError(f"check_every must be >= 1, got {check_every}")
+        self.check_every = int(check_every)
+        self.relax = [dict(o) for o in (RELAXED_STAGES if relax is None else relax)]
+        if not self.relax:
+            raise ValueError("relax needs at least one stage of model options")
+        self.stage = 0  # index into [given model, *relax]
         self.misfit_z: float | None = None
+        self.log_evidence_ratio: float | None = None
+        self._alternatives: dict[int, InverseSqrtPeakModel] = {}
         self.beta = float(beta)
         self.step_limit = None if step_limit is None else float(step_limit)
         self.n_starts = int(n_starts)
@@ -231,36 +259,75 @@ class PhysicsModelBO(AskTellOptimizer):
         chi2 = float((r**2).sum())
         return (chi2 - nu) / math.sqrt(2.0 * nu), chi2, nu
 
-    def _check_prior(self, X: torch.Tensor, Y: torch.Tensor) -> None:
-        """One step of ``prior_check``: the misfit; on a rejection, relax, refit and notify."""
-        if len(Y) < self.model.n_params + 5:
-            return
-        z, chi2, nu = self.misfit(X, Y)
-        self.misfit_z = z
-        if self.relaxed or z <= self.check_z:
-            return
-        old = self.model
-        options = {**self.model_options, **self.relax}
+    @property
+    def relaxed(self) -> bool:
+        """Whether the prior check has moved past the given model."""
+        return self.stage > 0
+
+    def _stage_model(self, stage: int) -> InverseSqrtPeakModel:
+        """The (cached) model of ``relax[stage - 1]``, warm-started from the current fit."""
+        if stage in self._alternatives:
+            return self._alternatives[stage]
+        options = {**self.model_options, **self.relax[stage - 1]}
         if "center_cov_scale_factor" in options:  # relative widening of the centre prior
             factor = float(options.pop("center_cov_scale_factor"))
             options["center_cov_scale"] = factor * float(
                 self.model_options.get("center_cov_scale", 3.0)
             )
-        self.model = InverseSqrtPeakModel(self.prior, self.bounds, **options)
-        self.model.theta = _extend_theta(old, self.model)
-        self.model.fit(X, Y)
-        self.relaxed = True
-        self.misfit_z, chi2_after, _ = self.misfit(X, Y)
+        model = InverseSqrtPeakModel(self.prior, self.bounds, **options)
+        model.theta = _extend_theta(self.model, model)
+        self._alternatives[stage] = model
+        return model
+
+    def _check_prior(self, X: torch.Tensor, Y: torch.Tensor) -> None:
+        """One step of ``prior_check``: misfit and evidence; on a rejection, move and notify."""
+        last = len(self.relax)
+        if self.stage == last or len(Y) < self.model.n_params + 5:
+            return
+        z, chi2, nu = self.misfit(X, Y)
+        self.misfit_z = z
+        target, reasons, fitted = None, [], set()
+        if z > self.check_z:
+            target = last
+            reasons.append(
+                f"the fitted physics form misses them by chi2/nu = {chi2 / nu:.2f} "
+                f"(z = {z:.1f} > {self.check_z:g})"
+            )
+        elif self.n_told % self.check_every == 0:
+            here = self.model.log_evidence()
+            ratios = {}
+            for stage in range(self.stage + 1, last + 1):
+                model = self._stage_model(stage)
+                model.fit(X, Y)
+                fitted.add(stage)
+                ratios[stage] = model.log_evidence() - here
+            best = max(ratios, key=ratios.get)
+            self.log_evidence_ratio = ratios[best]
+            if ratios[best] > self.evidence_margin:
+                target = best
+                lead = f"+{ratios[best]:.1f} > {self.evidence_margin:g}"
+                reasons.append(f"wider priors explain them better (log evidence {lead})")
+        if target is None:
+            return
+        model = self._stage_model(target)
+        if target not in fitted:
+            model.fit(X, Y)
+        self.model, self.stage = model, target
+        self._alternatives = {k: v for k, v in self._alternatives.items() if k > target}
+        self.misfit_z, chi2_after, nu_after = self.misfit(X, Y)
+        freed = ", ".join(f"{k} = {v:g}" for k, v in self.relax[target - 1].items())
         self.notify(
             "prior_rejected",
-            f"physics prior rejected after {len(Y)} readings: the fitted physics form misses "
-            f"them by chi2/nu = {chi2 / nu:.2f} (z = {z:.1f} > {self.check_z:g}); the shape's "
-            "scales, the background and the centre are now fitted with wider priors "
-            f"(chi2/nu = {chi2_after / max(len(Y) - self.model.n_params, 1):.2f} after)",
+            f"physics prior rejected after {len(Y)} readings: "
+            + "; ".join(reasons)
+            + f"; stage {target} of {last} from now on ({freed}; chi2/nu = "
+            f"{chi2_after / nu_after:.2f} after)",
+            stage=target,
             z=z,
             chi2=chi2,
             nu=nu,
             n=len(Y),
+            log_evidence_ratio=self.log_evidence_ratio,
         )
 
     def acquisition_with_grad(
@@ -333,6 +400,7 @@ class PhysicsModelBO(AskTellOptimizer):
             "trust_upper": box[1].clone(),
             "box_half_width": self.box_half_width,
             "misfit_z": self.misfit_z,
+            "log_evidence_ratio": self.log_evidence_ratio,
             "relaxed": self.relaxed,
             "fit_time_s": t1 - t0,
             "acq_time_s": time.perf_counter() - t1,
@@ -340,15 +408,12 @@ class PhysicsModelBO(AskTellOptimizer):
         return x
 
 
-#: Model options of :class:`PhysicsModelBO` after its prior check rejected the prior:
-#: the shape's eigen-scales and the background fitted, the scale and the centre freer
-#: (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
-RELAXED_OPTIONS = {
-    "shape_std": 1.0,
-    "f_inf_std": 0.1,
-    "log_beta_std": 1.0,
-    "center_cov_scale_factor": 4.0,
-}
+#: The stages of :class:`PhysicsModelBO`'s prior check after the given model: model options
+#: over the given ones (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
+RELAXED_STAGES = (
+    {"log_beta_std": 1.0, "f_inf_std": 0.1},
+    {"log_beta_std": 1.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
+)
 
 
 def _extend_theta(old: InverseSqrtPeakModel, new: InverseSqrtPeakModel) -> torch.Tensor:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
-from pigp_torch.optimizers.physics_bo import RELAXED_OPTIONS, PhysicsModelBO, _extend_theta
+from pigp_torch.optimizers.physics_bo import RELAXED_STAGES, PhysicsModelBO, _extend_theta
 from pigp_torch.prior import PhysicsPrior
 
 DT = torch.float64
@@ -83,9 +83,11 @@ def test_a_wrong_shape_is_rejected_once_with_a_notice_and_a_relaxed_refit():
     assert note["nu"] == note["n"] - (D + 2)
     assert note["z"] == pytest.approx((note["chi2"] - note["nu"]) / math.sqrt(2 * note["nu"]))
     assert "rejected after" in note["message"] and f"{note['n']} readings" in note["message"]
-    assert bo.model.shape_std == RELAXED_OPTIONS["shape_std"]
-    assert bo.model.f_inf_std == RELAXED_OPTIONS["f_inf_std"]
-    assert bo.model.log_beta_std == RELAXED_OPTIONS["log_beta_std"]
+    last = RELAXED_STAGES[-1]
+    assert bo.stage == note["stage"] == len(RELAXED_STAGES)  # a misfit goes to the last stage
+    assert bo.model.shape_std == last["shape_std"]
+    assert bo.model.f_inf_std == last["f_inf_std"]
+    assert bo.model.log_beta_std == last["log_beta_std"]
     assert bo.model.n_params == 2 * D + 3
 
 
@@ -131,3 +133,18 @@ def test_center_mean_moves_the_centre_prior():
     torch.testing.assert_close(model.prior_theta()[:D], shift)
     with pytest.raises(ValueError, match="center_mean"):
         InverseSqrtPeakModel(prior, prior.bounds, center_mean=[0.0, 1.0])
+
+
+def test_a_wrong_scale_moves_on_by_the_evidence():
+    """The machine's peak is the prior's shape 8x broader (a wrong calibration of the scale):
+    the residuals can stay small, but the evidence of the stage with a free scale wins and the
+    check moves there with a notice that gives the log-evidence lead."""
+    prior = _prior(_precision(0))
+    broad = _prior(_precision(0) / 8.0)
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4, check_every=1)
+    _run(bo, _machine(broad, [0.004, -0.003, 0.002, -0.001, 0.003], c=0.8), 40, prior.noise)
+    assert bo.relaxed
+    evidence = [n for n in bo.notices if n["log_evidence_ratio"] is not None]
+    assert evidence and evidence[0]["log_evidence_ratio"] > bo.evidence_margin
+    assert "log evidence" in evidence[0]["message"]
+    assert bo.model.log_beta_std == RELAXED_STAGES[0]["log_beta_std"] or bo.stage == 2
