@@ -25,6 +25,7 @@ def find_optimum(
     seed: int = 0,
     x_init=None,
     maxiter: int = 2000,
+    with_grad: bool = False,
 ) -> tuple[Tensor, float]:
     r"""Maximize ``f`` within ``bounds`` by multi-start L-BFGS-B with autograd gradients.
 
@@ -43,6 +44,9 @@ def find_optimum(
         seed: seed of the Sobol scrambling.
         x_init: optional ``d`` or ``k x d`` extra starting points (clipped into the box).
         maxiter: L-BFGS-B iteration limit.
+        with_grad: ``f`` returns ``(values, gradients)``, ``N`` and ``N x d`` (a closed-form
+            gradient, faster than building an autograd graph at every step); default: ``f``
+            returns the values and autograd differentiates them.
 
     Returns:
         ``(x0, f_x0)``: ``d`` best setting found and its value (float).
@@ -65,7 +69,7 @@ def find_optimum(
         starts.append(((xi - lo) / width).clamp(0.0, 1.0))
     if not starts:
         raise ValueError("no starting point: give n_starts > 0 or x_init")
-    X, y = maximize_from(f, b, torch.cat(starts), maxiter=maxiter)
+    X, y = maximize_from(f, b, torch.cat(starts), maxiter=maxiter, with_grad=with_grad)
     if not torch.isfinite(y).any():
         raise ValueError("f was not finite at any starting point")
     i = int(y.argmax())
@@ -73,7 +77,11 @@ def find_optimum(
 
 
 def maximize_from(
-    f: Callable[[Tensor], Tensor], bounds, Z0: Tensor, maxiter: int = 2000
+    f: Callable[[Tensor], Tensor],
+    bounds,
+    Z0: Tensor,
+    maxiter: int = 2000,
+    with_grad: bool = False,
 ) -> tuple[Tensor, Tensor]:
     r"""Run the batched L-BFGS-B of :func:`find_optimum` from given starts; return every end point.
 
@@ -87,6 +95,8 @@ def maximize_from(
         bounds: ``2 x d`` lower / upper limits.
         Z0: ``k x d`` starts in the unit cube (``k >= 1``).
         maxiter: L-BFGS-B iteration limit.
+        with_grad: ``f`` returns ``(values, gradients in knob units)`` (see
+            :func:`find_optimum`).
 
     Returns:
         ``(X, y)``: ``k x d`` end points (knob units) and their ``k`` values of ``f``
@@ -104,17 +114,27 @@ def maximize_from(
     k = Z0.shape[0]
 
     def evaluate(z: Tensor) -> Tensor:
-        y = f(lo + width * z).reshape(-1)
+        y = f(lo + width * z)
+        y = (y[0] if with_grad else y).reshape(-1)
         if y.numel() != z.shape[0]:
             raise ValueError(f"f must return one value per row, got shape {tuple(y.shape)}")
         return y
 
     def neg_total(zflat: np.ndarray) -> tuple[float, np.ndarray]:
-        z = torch.from_numpy(zflat.reshape(k, d)).to(DTYPE).requires_grad_(True)
-        y = evaluate(z)
-        ok = torch.isfinite(y)
+        z = torch.from_numpy(zflat.reshape(k, d)).to(DTYPE)
+        if with_grad:
+            with torch.no_grad():
+                y, gx = f(lo + width * z)
+            y = y.reshape(-1)
+            ok = torch.isfinite(y)
+            g = torch.where(ok.unsqueeze(-1), gx * width, torch.zeros_like(gx))
+        else:
+            z.requires_grad_(True)
+            y = evaluate(z)
+            ok = torch.isfinite(y)
         total = torch.where(ok, y, torch.zeros_like(y)).sum()
-        (g,) = torch.autograd.grad(total, z)
+        if not with_grad:
+            (g,) = torch.autograd.grad(total, z)
         penalty = 1e6 * float((~ok).sum())
         return -float(total.detach()) + penalty, -g.detach().numpy().reshape(-1)
 

@@ -75,13 +75,29 @@ def machine_loss_map(machine_seed: int, model_map, spread=None) -> tuple[float, 
     return float(model_map[0]) * (1.0 + d), float(model_map[1]) * (1.0 + e)
 
 
-def build_machine(machine_seed: int, ring: RingSpec, machine_maps: bool = True) -> RingCoupling:
-    """Machine ``machine_seed`` of ``ring``, with its own loss-rate map unless ``machine_maps``
-    is false."""
+def _maps_key(machine_maps) -> bool | tuple[float, float]:
+    """``machine_maps`` as a flag or a pair of factors (see :func:`build_machine`)."""
+    if isinstance(machine_maps, (tuple, list)):
+        a, b = (float(v) for v in machine_maps)
+        if not (a >= 0 and b > 0):
+            raise ValueError(f"loss-map factors must be >= 0 and > 0, got {machine_maps}")
+        return (a, b)
+    return bool(machine_maps)
+
+
+def build_machine(machine_seed: int, ring: RingSpec, machine_maps=True) -> RingCoupling:
+    r"""Machine ``machine_seed`` of ``ring`` with its loss-rate map: ``True`` its own
+    (:func:`machine_loss_map`), ``False`` the model's :math:`(f_\infty, g)`, or a pair of
+    factors ``(a, b)``: :math:`(a f_\infty, b g)` for every machine (a map further off than the
+    protocol's spread, e.g. a new vacuum chamber)."""
+    key = _maps_key(machine_maps)
     sim = ring.build(int(machine_seed))
-    if not machine_maps:
+    if key is False:
         return sim
-    own = machine_loss_map(machine_seed, sim.loss_rate_map)
+    if key is True:
+        own = machine_loss_map(machine_seed, sim.loss_rate_map)
+    else:
+        own = (sim.loss_rate_map[0] * key[0], sim.loss_rate_map[1] * key[1])
     return ring.build(int(machine_seed), loss_rate_map=own)
 
 
@@ -96,14 +112,14 @@ def machine_optimum(
     *,
     knobs=None,
     ring: RingSpec | None = None,
-    machine_maps: bool = False,
+    machine_maps=False,
 ) -> float:
     """:math:`f^*` of machine ``machine_seed`` of ``ring`` (default SPEAR3; ``knobs`` overrides
     its knob set; with ``machine_maps`` its own loss-rate map) from zero knobs and ``n_starts``
     Sobol starts of L-BFGS-B (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per
     process."""
     spec = as_ring_spec(ring, knobs=knobs)
-    key = (int(machine_seed), int(n_starts), spec, bool(machine_maps))
+    key = (int(machine_seed), int(n_starts), spec, _maps_key(machine_maps))
     if key not in _OPTIMA:
         sim = build_machine(key[0], spec, machine_maps)
         _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
@@ -123,6 +139,7 @@ def model_prior(
     source: str = "exact",
     n_samples: int = 100_000,
     members: int = 3,
+    model: RingCoupling | None = None,
 ) -> PhysicsPrior:
     """The physics prior from the model ring ``ring.build(model_seed)`` (default SPEAR3;
     ``knobs`` overrides its knob set).
@@ -138,10 +155,18 @@ def model_prior(
     error seeds :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
     (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, ~3-7 s a ring; ``progress``
     prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
+
+    ``model``: a model ring built elsewhere (e.g. re-tuned, see
+    :mod:`~pigp_torch.benchmark.mismatch`) instead of ``ring.build(model_seed)``; its ensemble
+    rings are its own lattice with the ensemble's error seeds.
     """
-    spec = as_ring_spec(ring, knobs=knobs)
-    sim = spec.build(int(model_seed))
-    provenance = {"model": spec.describe(model_seed), "ring": spec.to_dict()}
+    if model is None:
+        spec = as_ring_spec(ring, knobs=knobs)
+        sim = spec.build(int(model_seed))
+        provenance = {"model": spec.describe(model_seed), "ring": spec.to_dict()}
+    else:
+        sim = model
+        provenance = {"model": f"{sim.name}, error seed {sim.error_seed} (given)"}
     fields = {}
     if int(center_ensemble) > 0:
         optima = ensemble_optima(ensemble_seeds(int(center_ensemble)), model=sim,
@@ -205,7 +230,7 @@ def run_one(
     optimum_starts: int = 8,
     knobs=None,
     ring: RingSpec | None = None,
-    machine_maps: bool = True,
+    machine_maps=True,
 ) -> pd.DataFrame:
     """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
 
@@ -241,6 +266,10 @@ def run_one(
         x0 = torch.zeros(sim.dim, dtype=DTYPE)
         table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
         table.insert(1, "machine_seed", int(machine_seed))
+        notes = {}  # the optimizer's notices, on the row of the step whose ask made them
+        for n in getattr(optimizer, "notices", ()):
+            notes.setdefault(int(n["at_told"]), n["kind"])
+        table["notice"] = [notes.get(int(s), "") for s in table["step"]]
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
             return score_run(table, sim, float("nan"))
         f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring,
@@ -275,7 +304,7 @@ def run_benchmark(
     scheduler: str | None = None,
     center_ensemble: int = ENSEMBLE_SIZE,
     ring: RingSpec | None = None,
-    machine_maps: bool = True,
+    machine_maps=True,
     prior_source: str = "exact",
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
@@ -307,7 +336,9 @@ def run_benchmark(
         ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
             SPEAR3 user-mode ring, 13 knobs in amps).
         machine_maps: every machine has its own loss-rate map (:func:`machine_loss_map`,
-            default); ``False``: the model's constants on every machine.
+            default); ``False``: the model's constants on every machine; ``(a, b)``: the
+            model's background times ``a`` and Touschek scale times ``b`` on every machine
+            (:func:`build_machine`).
         prior_source: how the prior is computed when not given (:func:`model_prior`):
             ``"exact"`` (default) or ``"surrogate"`` (the paper's chain).
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
@@ -392,7 +423,7 @@ def run_benchmark(
                 "archive_size": int(archive_size),
                 "optimum_starts": int(optimum_starts),
                 "ring": ring,
-                "machine_maps": bool(machine_maps),
+                "machine_maps": _maps_key(machine_maps),
             },
         )
         for spec in specs

@@ -31,14 +31,15 @@ Fit (MAP, Gaussian noise of known :math:`\sigma_n` on :math:`f`):
     + \tfrac12\Big\|\tfrac{\boldsymbol\mu - \boldsymbol\mu_0}{\tau\,\mathbf h}\Big\|^2
     + \tfrac{(\log c - \log c_m)^2}{2 s_c^2} + \tfrac{(\log\beta)^2}{2 s_\beta^2},
 
-(:math:`\mathbf h` the knob half-ranges, :math:`\boldsymbol\mu_0` the box centre) by L-BFGS-B from
-several starts: the previous fit, the prior mean, and the weighted linear least-squares solution
-of :math:`g_i - \mathbf x_i^\top B \mathbf x_i = a + \mathbf w^\top \mathbf x_i` (exact for
-:math:`\beta = 1`). Uncertainty: the Laplace (Gauss-Newton) covariance :math:`C` of
-:math:`\hat\theta`, propagated to :math:`f` by the Jacobian :math:`J(\mathbf x) = \partial f /
-\partial\theta`. What the form misses is modelled by a residual GP (zero mean, fixed full-precision
-RBF kernel with the *machine-scale* precision :math:`\hat\beta B / (2\hat c)`, i.e. the
-physics-informed kernel at the fitted optimum, amplitude ``residual_std``) conditioned on the
+(:math:`\mathbf h` the knob half-ranges, :math:`\boldsymbol\mu_0` the box centre unless
+given) by L-BFGS-B from several starts: the previous fit, the prior mean, and the weighted
+linear least-squares solution of :math:`g_i - \mathbf x_i^\top B \mathbf x_i = a +
+\mathbf w^\top \mathbf x_i` (exact for :math:`\beta = 1`). Uncertainty: the Laplace
+(Gauss-Newton) covariance :math:`C` of :math:`\hat\theta`, propagated to :math:`f` by the
+Jacobian :math:`J(\mathbf x) = \partial f / \partial\theta`. What the form misses is modelled
+by a residual GP (zero mean, fixed full-precision RBF kernel with the *machine-scale* precision
+:math:`\hat\beta B / (2\hat c)`, i.e. the physics-informed kernel at the fitted optimum,
+amplitude ``residual_std``) conditioned on the
 residuals :math:`y_i - f(\mathbf x_i; \hat\theta)`:
 
 .. math::
@@ -70,6 +71,8 @@ class InverseSqrtPeakModel:
         noise: measurement noise :math:`\sigma_n` of the objective (default: ``prior.noise``).
         center_std: :math:`\tau`, prior std of each centre coordinate in half-ranges (the
             isotropic "box" prior, used when ``center_cov`` is ``None``).
+        center_mean: ``d`` prior mean :math:`\boldsymbol\mu_0` of the centre (knob units;
+            default ``None``: the box centre, i.e. the knobs' zero on a symmetric box).
         center_cov: ``d x d`` covariance :math:`C_e` of machine optima over an ensemble of
             model rings (:attr:`PhysicsPrior.center_cov <pigp_torch.prior.PhysicsPrior>`); the
             centre prior is then :math:`\mathcal N(\boldsymbol\mu_0, C_\mu)` with
@@ -114,6 +117,7 @@ class InverseSqrtPeakModel:
         residual_std: float = 0.05,
         f_inf_std: float = 0.0,
         center_cov=None,
+        center_mean=None,
         center_cov_scale: float = 3.0,
         center_floor_std: float = 0.22,
         shape=None,
@@ -157,6 +161,10 @@ class InverseSqrtPeakModel:
             self._lam, self._V = torch.linalg.eigh(self.B)
         lower, upper = self.bounds
         self.center0 = (upper + lower) / 2
+        if center_mean is not None:
+            self.center0 = torch.as_tensor(center_mean, dtype=DTYPE).reshape(-1).clone()
+            if self.center0.shape != (d,) or not torch.isfinite(self.center0).all():
+                raise ValueError(f"center_mean must be {d} finite values")
         half = (upper - lower) / 2
         self.tau = float(center_std) * half
         self.center_cov = None if center_cov is None else torch.as_tensor(center_cov, dtype=DTYPE)
@@ -338,34 +346,6 @@ class InverseSqrtPeakModel:
             pen = pen + (theta[self._s_index :] ** 2).sum() / self.shape_std**2
         return 0.5 * (r**2).sum() + 0.5 * pen
 
-    def _neg_log_post_and_grad(self, theta: Tensor, X: Tensor, Y: Tensor):
-        r""":meth:`_neg_log_post` and its gradient in closed form (no autograd):
-        :math:`\nabla = -J^\top r / \sigma_n + \tfrac12 \nabla\text{pen}` with :math:`J`
-        the analytic :meth:`jacobian` and :math:`r = (Y - f)/\sigma_n`."""
-        d = self.dim
-        r = (Y - self.form(X, theta)) / self.noise
-        grad = -(self.jacobian(X, theta).T @ r) / self.noise
-        dmu = theta[:d] - self.center0
-        if self.center_cov is None:
-            w = dmu / self.tau**2
-        else:
-            w = self.center_precision @ dmu
-        pen = dmu @ w
-        grad[:d] += w
-        z = (theta[d] - self.log_c_model) / self.log_c_std
-        pen = pen + z**2
-        grad[d] += z / self.log_c_std
-        pen = pen + (theta[d + 1] / self.log_beta_std) ** 2
-        grad[d + 1] += theta[d + 1] / self.log_beta_std**2
-        if self.f_inf_std > 0:
-            pen = pen + (theta[d + 2] / self.f_inf_std) ** 2
-            grad[d + 2] += theta[d + 2] / self.f_inf_std**2
-        if self.shape_std > 0:
-            s = theta[self._s_index :]
-            pen = pen + (s**2).sum() / self.shape_std**2
-            grad[self._s_index :] += s / self.shape_std**2
-        return 0.5 * (r**2).sum() + 0.5 * pen, grad
-
     def _linear_start(self, X: Tensor, Y: Tensor) -> Tensor | None:
         r"""Weighted least squares of :math:`g_i - \mathbf x_i^\top B\mathbf x_i = a +
         \mathbf w^\top\mathbf x_i` (:math:`\beta=1`); weights from the delta method,
@@ -416,12 +396,13 @@ class InverseSqrtPeakModel:
             scale[: self.dim] = self.tau
         scale_np = scale.numpy()
 
+        objective = _NumpyObjective(self, X, Y)
+
         def value_and_grad(z: np.ndarray) -> tuple[float, np.ndarray]:
-            with torch.no_grad():
-                v, grad = self._neg_log_post_and_grad(torch.from_numpy(z) * scale, X, Y)
-            if not (torch.isfinite(v) and torch.isfinite(grad).all()):
+            v, grad = objective(z * scale_np)
+            if not (np.isfinite(v) and np.isfinite(grad).all()):
                 return 1e30, np.zeros_like(z)
-            return float(v.detach()), (grad * scale).numpy()
+            return v, grad * scale_np
 
         best = None
         for t0 in starts:
@@ -437,7 +418,31 @@ class InverseSqrtPeakModel:
         self.theta = best[0]
         self._laplace(X)
         self._residual_gp(X, Y)
+        self.neg_log_post = best[1]
+        self._n = X.shape[0]
         return best[1]
+
+    def log_evidence(self) -> float:
+        r"""Laplace estimate of the log marginal likelihood of the last :meth:`fit`'s data
+        under this model (the residual GP not included):
+
+        .. math::
+            \log Z \approx -\tfrac12\|\mathbf r\|^2 - \tfrac12\,\mathrm{pen}(\hat\theta)
+            - \tfrac n2 \log(2\pi\sigma_n^2) + \tfrac12\log\det\Lambda_0
+            - \tfrac12\log\det A,
+
+        :math:`\Lambda_0` the prior precision of :math:`\theta`, :math:`A = J^\top J/\sigma_n^2
+        + \Lambda_0` (Gauss-Newton). Two models of the same readings compare by it (a
+        difference of 3 is odds of 20 to 1)."""
+        if self.theta is None:
+            raise RuntimeError("fit() the model first")
+        n = self._n
+        return (
+            -self.neg_log_post
+            - 0.5 * n * math.log(2 * math.pi * self.noise**2)
+            + 0.5 * self._log_det_prior
+            - 0.5 * self._log_det_A
+        )
 
     def _laplace(self, X: Tensor) -> None:
         J = self.jacobian(X)
@@ -452,7 +457,10 @@ class InverseSqrtPeakModel:
         else:
             prior_prec = torch.block_diag(self.center_precision, tail)
         A = J.T @ J / self.noise**2 + prior_prec
-        cov = torch.cholesky_inverse(torch.linalg.cholesky(A))
+        L = torch.linalg.cholesky(A)
+        cov = torch.cholesky_inverse(L)
+        self._log_det_A = 2.0 * float(torch.log(L.diagonal()).sum())
+        self._log_det_prior = float(torch.linalg.slogdet(prior_prec)[1])
         self.cov = (cov + cov.T) / 2
 
     def residual_precision(self) -> Tensor:
@@ -491,3 +499,138 @@ class InverseSqrtPeakModel:
             V = torch.cholesky_solve(Ks.transpose(-1, -2), self._L)
             var = var + self.residual_std**2 - (Ks * V.transpose(-1, -2)).sum(-1)
         return mu, var.clamp_min(1e-18).sqrt()
+
+    def predict_with_grad(self, X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        r""":meth:`predict` and its gradients in ``X`` in closed form (no autograd graph):
+        ``(mu, sd, dmu, dsd)``, ``n``, ``n``, ``n x d``, ``n x d``.
+
+        With :math:`\mathbf D = \mathbf x - \hat{\boldsymbol\mu}`, :math:`g = c + \beta
+        \mathbf D^\top B\mathbf D` and :math:`\mathbf w = C\,\mathbf j` (:math:`\mathbf j`
+        the row of :meth:`jacobian`):
+
+        .. math::
+            \nabla f = -\beta g^{-3/2} B\mathbf D, \qquad
+            \nabla(\mathbf j^\top C\mathbf j) = 2 \sum_k w_k \nabla j_k,
+
+        :math:`\nabla j_k` from :math:`j_k = -\tfrac12 g^{-3/2}\,\partial g/\partial\theta_k`
+        (:math:`\nabla g^{-3/2} = -3\beta g^{-5/2} B\mathbf D`). The residual GP adds
+        :math:`\nabla k_i = -k_i P(\mathbf x - \mathbf x_i)` to the mean (weights
+        :math:`\alpha`) and :math:`-2\sum_i u_i \nabla k_i`, :math:`\mathbf u = K^{-1}\mathbf
+        k`, to the variance; :math:`\nabla\sigma = \nabla\sigma^2 / (2\sigma)` (zero where the
+        variance sits at its floor)."""
+        theta = self._fitted()
+        d = self.dim
+        B = self.shape(theta)
+        D = X - theta[:d]
+        BD = D @ B
+        q = (BD * D).sum(-1)
+        c, beta = torch.exp(theta[d]), torch.exp(theta[d + 1])
+        g = c + beta * q
+        g15 = g**-1.5
+        mu = self.background(theta) + torch.rsqrt(g)
+        dmu = -(beta * g15).unsqueeze(-1) * BD
+        J = self.jacobian(X, theta)
+        W = J @ self.cov  # n x p
+        var = (W * J).sum(-1)
+        # phys: the entries j_k = dfdg * dg_k (all but the background's j = 1)
+        dfdg = -0.5 * g15
+        dg_mu = -2.0 * beta * BD
+        wdg = (W[..., :d] * dg_mu).sum(-1) + W[..., d] * c + W[..., d + 1] * beta * q
+        grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
+        inner = -2.0 * beta * (W[..., :d] @ B) + (2.0 * beta * W[..., d + 1]).unsqueeze(-1) * BD
+        if self.shape_std > 0:
+            s = theta[self._s_index : self._s_index + d]
+            lam = self._lam * torch.exp(s)
+            Ws = W[..., self._s_index : self._s_index + d]
+            wdg = wdg + (Ws * beta * (D @ self._V) ** 2 * lam).sum(-1)
+            grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
+            inner = inner + 2.0 * beta * ((Ws * lam * (D @ self._V)) @ self._V.T)
+        dvar = 2.0 * (grad_v + dfdg.unsqueeze(-1) * inner)
+        if self.residual_std > 0:
+            Ks = self._k_res(X, self._X)  # n x m
+            Dr = X.unsqueeze(-2) - self._X  # n x m x d
+            PDr = Dr @ self._res_prec
+            mu = mu + Ks @ self._alpha
+            dmu = dmu - ((Ks * self._alpha).unsqueeze(-1) * PDr).sum(-2)
+            U = torch.cholesky_solve(Ks.transpose(-1, -2), self._L).transpose(-1, -2)
+            var = var + self.residual_std**2 - (Ks * U).sum(-1)
+            dvar = dvar + 2.0 * ((U * Ks).unsqueeze(-1) * PDr).sum(-2)
+        floor = var <= 1e-18
+        sd = var.clamp_min(1e-18).sqrt()
+        dsd = torch.where(floor.unsqueeze(-1), 0.0, dvar / (2 * sd).unsqueeze(-1))
+        return mu, sd, dmu, dsd
+
+
+class _NumpyObjective:
+    r"""The negative log posterior :meth:`InverseSqrtPeakModel._neg_log_post` and its gradient
+    in closed form, in NumPy, for the L-BFGS-B fit:
+    :math:`\nabla = -J^\top \mathbf r / \sigma_n + \tfrac12 \nabla\text{pen}`, :math:`J` as in
+    :meth:`InverseSqrtPeakModel.jacobian` and :math:`\mathbf r = (\mathbf y - f)/\sigma_n`.
+
+    The arrays have 13-100 entries: at these sizes each torch call costs more
+    than its arithmetic, and the fit evaluates it hundreds of times an ask.
+    A test checks it against the torch version to round-off."""
+
+    def __init__(self, model: InverseSqrtPeakModel, X: Tensor, Y: Tensor) -> None:
+        self.d = model.dim
+        self.X, self.Y = X.numpy(), Y.numpy()
+        self.noise = model.noise
+        self.center0 = model.center0.numpy()
+        self.P = None if model.center_cov is None else model.center_precision.numpy()
+        self.tau2 = (model.tau**2).numpy()
+        self.log_c_model, self.log_c_std = model.log_c_model, model.log_c_std
+        self.log_beta_std = model.log_beta_std
+        self.f_inf, self.f_inf_std = model.f_inf, model.f_inf_std
+        self.shape_std, self.s_index = model.shape_std, model._s_index
+        if self.shape_std > 0:
+            self.lam, self.V = model._lam.numpy(), model._V.numpy()
+        else:
+            self.B = model.B.numpy()
+
+    def __call__(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        with np.errstate(all="ignore"):  # an overflow gives inf/nan: the caller rejects it
+            return self._evaluate(theta)
+
+    def _evaluate(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        d = self.d
+        mu, log_c, log_beta = theta[:d], theta[d], theta[d + 1]
+        c, beta = np.exp(log_c), np.exp(log_beta)
+        D = self.X - mu
+        if self.shape_std > 0:
+            s = theta[self.s_index : self.s_index + d]
+            lam = self.lam * np.exp(s)
+            DV = D @ self.V
+            BD = (DV * lam) @ self.V.T
+        else:
+            BD = D @ self.B
+        q = (BD * D).sum(-1)
+        g = c + beta * q
+        background = self.f_inf + (theta[d + 2] if self.f_inf_std > 0 else 0.0)
+        r = (self.Y - background - g**-0.5) / self.noise
+        # d(0.5 |r|^2)/d theta = -r/noise . df/dtheta, df/dg = -0.5 g^-1.5
+        a = -(r / self.noise) * (-0.5 * g**-1.5)  # n: weight of dg/dtheta
+        grad = np.empty_like(theta)
+        grad[:d] = -2.0 * beta * (a @ BD)
+        grad[d] = c * a.sum()
+        grad[d + 1] = beta * (a @ q)
+        if self.f_inf_std > 0:
+            grad[d + 2] = -(r / self.noise).sum()
+        if self.shape_std > 0:
+            grad[self.s_index : self.s_index + d] = beta * (a @ (DV**2)) * lam
+        dmu = mu - self.center0
+        w = dmu / self.tau2 if self.P is None else self.P @ dmu
+        pen = dmu @ w
+        grad[:d] += w
+        z = (log_c - self.log_c_model) / self.log_c_std
+        pen += z**2
+        grad[d] += z / self.log_c_std
+        pen += (log_beta / self.log_beta_std) ** 2
+        grad[d + 1] += log_beta / self.log_beta_std**2
+        if self.f_inf_std > 0:
+            pen += (theta[d + 2] / self.f_inf_std) ** 2
+            grad[d + 2] += theta[d + 2] / self.f_inf_std**2
+        if self.shape_std > 0:
+            s = theta[self.s_index :]
+            pen += (s**2).sum() / self.shape_std**2
+            grad[self.s_index :] += s / self.shape_std**2
+        return float(0.5 * (r**2).sum() + 0.5 * pen), grad

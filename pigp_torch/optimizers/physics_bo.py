@@ -76,12 +76,43 @@ class PhysicsModelBO(AskTellOptimizer):
             error ensemble, :attr:`prior.peak_shape <pigp_torch.prior.PhysicsPrior>`;
             ``"model"``: the model ring's own, :math:`2 c_m \Sigma`; ``"auto"`` (default): the
             ensemble's when the prior has one.
+        prior_check: test whether the physics prior still explains the readings, and move,
+            for good, to models with wider priors when it does not (default on). The models
+            are the given one (stage 0) and the stages of ``relax``, each a set of options over
+            the given ones. From :math:`n \ge p + 5` readings on (:math:`p` parameters of the
+            current model) two tests run:
+
+            * the misfit of the fitted form at every ask (residual GP excluded),
+              :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}`, :math:`\chi^2 = \sum_i (y_i -
+              f(\mathbf x_i;\hat\theta))^2/\sigma_n^2`, :math:`\nu = n - p`, about
+              :math:`\mathcal N(0, 1)` when the form is right; :math:`z >` ``check_z`` moves
+              to the last stage;
+            * every ``check_every``-th ask the later stages are fitted too and compared with
+              the current one by their Laplace evidence
+              (:meth:`~pigp_torch.models.InverseSqrtPeakModel.log_evidence`); the best of them
+              takes over when it leads by more than ``evidence_margin`` (a wrong scale of the
+              shape leaves the residuals small but needs a :math:`\log\beta` far out in its
+              prior).
+
+            Each move (the new model warm-started from the current fit) writes a notice
+            (``kind = "prior_rejected"``, with ``stage``, ``z``, ``chi2``, ``nu``, ``n``,
+            ``log_evidence_ratio``) to :attr:`notices` for the run log and the progress line.
+        check_z: misfit threshold (default 4).
+        evidence_margin: log-evidence lead that moves to a later stage (default 3 nats, odds
+            of 20 to 1).
+        check_every: period of the evidence comparison in asks (default 3; it costs one more
+            fit per later stage).
+        relax: the stages after the given model (default :data:`RELAXED_STAGES`: first the
+            scale and the background free, ``log_beta_std = 1``, ``f_inf_std = 0.1``; then also
+            the shape's eigen-scales, ``shape_std = 1``, and a centre prior 4x wider in
+            variance).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
-    ``fitted_peak``, ``acq_value``, ``fit_time_s``, ``acq_time_s``.
+    ``fitted_peak``, ``acq_value``, ``misfit_z``, ``log_evidence_ratio``, ``relaxed``,
+    ``fit_time_s``, ``acq_time_s``.
     """
 
     name = "pigp-physics"
@@ -105,6 +136,11 @@ class PhysicsModelBO(AskTellOptimizer):
         center_prior: str = "auto",
         shape_prior: str = "auto",
         travel_limit=None,
+        prior_check: bool = True,
+        check_z: float = 4.0,
+        evidence_margin: float = 3.0,
+        check_every: int = 3,
+        relax=None,
         maximize: bool = True,
         **model_options,
     ) -> None:
@@ -119,6 +155,25 @@ class PhysicsModelBO(AskTellOptimizer):
         self.shape_prior = _choose(shape_prior, "shape_prior", "model", prior.peak_shape,
                                    "shape", model_options)  # fmt: skip
         self.model = InverseSqrtPeakModel(prior, self.bounds, **model_options)
+        self.prior = prior
+        self.model_options = dict(model_options)
+        self.prior_check = bool(prior_check)
+        if not (math.isfinite(float(check_z)) and float(check_z) > 0):
+            raise ValueError(f"check_z must be positive and finite, got {check_z}")
+        self.check_z = float(check_z)
+        if not (math.isfinite(float(evidence_margin)) and float(evidence_margin) >= 0):
+            raise ValueError(f"evidence_margin must be >= 0 and finite, got {evidence_margin}")
+        self.evidence_margin = float(evidence_margin)
+        if int(check_every) < 1:
+            raise ValueError(f"check_every must be >= 1, got {check_every}")
+        self.check_every = int(check_every)
+        self.relax = [dict(o) for o in (RELAXED_STAGES if relax is None else relax)]
+        if not self.relax:
+            raise ValueError("relax needs at least one stage of model options")
+        self.stage = 0  # index into [given model, *relax]
+        self.misfit_z: float | None = None
+        self.log_evidence_ratio: float | None = None
+        self._alternatives: dict[int, InverseSqrtPeakModel] = {}
         self.beta = float(beta)
         self.step_limit = None if step_limit is None else float(step_limit)
         self.n_starts = int(n_starts)
@@ -196,6 +251,97 @@ class PhysicsModelBO(AskTellOptimizer):
         beta = self.beta if beta is None else beta
         return mu + math.sqrt(beta) * sd if beta > 0 else mu
 
+    def misfit(self, X: torch.Tensor, Y: torch.Tensor) -> tuple[float, float, int]:
+        r"""``(z, chi2, nu)`` of the fitted form at the told ``X``, ``Y`` (see ``prior_check``)."""
+        with torch.no_grad():
+            r = (Y - self.model.form(X)) / self.model.noise
+        nu = max(len(Y) - self.model.n_params, 1)
+        chi2 = float((r**2).sum())
+        return (chi2 - nu) / math.sqrt(2.0 * nu), chi2, nu
+
+    @property
+    def relaxed(self) -> bool:
+        """Whether the prior check has moved past the given model."""
+        return self.stage > 0
+
+    def _stage_model(self, stage: int) -> InverseSqrtPeakModel:
+        """The (cached) model of ``relax[stage - 1]``, warm-started from the current fit."""
+        if stage in self._alternatives:
+            return self._alternatives[stage]
+        options = {**self.model_options, **self.relax[stage - 1]}
+        if "center_cov_scale_factor" in options:  # relative widening of the centre prior
+            factor = float(options.pop("center_cov_scale_factor"))
+            options["center_cov_scale"] = factor * float(
+                self.model_options.get("center_cov_scale", 3.0)
+            )
+        model = InverseSqrtPeakModel(self.prior, self.bounds, **options)
+        model.theta = _extend_theta(self.model, model)
+        self._alternatives[stage] = model
+        return model
+
+    def _check_prior(self, X: torch.Tensor, Y: torch.Tensor) -> None:
+        """One step of ``prior_check``: misfit and evidence; on a rejection, move and notify."""
+        last = len(self.relax)
+        if self.stage == last or len(Y) < self.model.n_params + 5:
+            return
+        z, chi2, nu = self.misfit(X, Y)
+        self.misfit_z = z
+        target, reasons, fitted = None, [], set()
+        if z > self.check_z:
+            target = last
+            reasons.append(
+                f"the fitted physics form misses them by chi2/nu = {chi2 / nu:.2f} "
+                f"(z = {z:.1f} > {self.check_z:g})"
+            )
+        elif self.n_told % self.check_every == 0:
+            here = self.model.log_evidence()
+            ratios = {}
+            for stage in range(self.stage + 1, last + 1):
+                model = self._stage_model(stage)
+                model.fit(X, Y)
+                fitted.add(stage)
+                ratios[stage] = model.log_evidence() - here
+            best = max(ratios, key=ratios.get)
+            self.log_evidence_ratio = ratios[best]
+            if ratios[best] > self.evidence_margin:
+                target = best
+                lead = f"+{ratios[best]:.1f} > {self.evidence_margin:g}"
+                reasons.append(f"wider priors explain them better (log evidence {lead})")
+        if target is None:
+            return
+        model = self._stage_model(target)
+        if target not in fitted:
+            model.fit(X, Y)
+        self.model, self.stage = model, target
+        self._alternatives = {k: v for k, v in self._alternatives.items() if k > target}
+        self.misfit_z, chi2_after, nu_after = self.misfit(X, Y)
+        freed = ", ".join(f"{k} = {v:g}" for k, v in self.relax[target - 1].items())
+        self.notify(
+            "prior_rejected",
+            f"physics prior rejected after {len(Y)} readings: "
+            + "; ".join(reasons)
+            + f"; stage {target} of {last} from now on ({freed}; chi2/nu = "
+            f"{chi2_after / nu_after:.2f} after)",
+            stage=target,
+            z=z,
+            chi2=chi2,
+            nu=nu,
+            n=len(Y),
+            log_evidence_ratio=self.log_evidence_ratio,
+        )
+
+    def acquisition_with_grad(
+        self, X: torch.Tensor, beta: float | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`acquisition` at ``n x d`` settings and its ``n x d`` gradient in closed form
+        (:meth:`~pigp_torch.models.InverseSqrtPeakModel.predict_with_grad`)."""
+        mu, sd, dmu, dsd = self.model.predict_with_grad(X)
+        beta = self.beta if beta is None else beta
+        if beta <= 0:
+            return mu, dmu
+        root = math.sqrt(beta)
+        return mu + root * sd, dmu + root * dsd
+
     def centre_information(self, X: torch.Tensor) -> torch.Tensor:
         r"""Reduction of :math:`\mathrm{tr}(B\,C_\mu)` by one more reading at each of ``n x d``
         settings (after a fit), :math:`C_\mu` the Laplace covariance of the fitted centre.
@@ -220,6 +366,8 @@ class PhysicsModelBO(AskTellOptimizer):
         Y = torch.tensor(self.Y, dtype=DTYPE)
         t0 = time.perf_counter()
         self.model.fit(X, Y)
+        if self.prior_check:
+            self._check_prior(X, Y)
         with torch.no_grad():
             mean, _ = self.model.predict(X)
         center = X[int(mean.argmax())]
@@ -232,12 +380,13 @@ class PhysicsModelBO(AskTellOptimizer):
         inform = not exploit and self.info_every > 0 and self.n_told % self.info_every == 0
         beta = 0.0 if exploit else self.beta
         x, value = find_optimum(
-            self.centre_information if inform else (lambda Z: self.acquisition(Z, beta)),
+            self.centre_information if inform else (lambda Z: self.acquisition_with_grad(Z, beta)),
             box,
             n_starts=self.n_starts,
             seed=self.seed + self.n_told,
             x_init=torch.stack([center, torch.minimum(torch.maximum(fitted, box[0]), box[1])]),
             maxiter=200,
+            with_grad=not inform,
         )
         x = torch.minimum(torch.maximum(x, box[0]), box[1])  # guard against round-off
         self.last_info = {
@@ -250,10 +399,34 @@ class PhysicsModelBO(AskTellOptimizer):
             "trust_lower": box[0].clone(),
             "trust_upper": box[1].clone(),
             "box_half_width": self.box_half_width,
+            "misfit_z": self.misfit_z,
+            "log_evidence_ratio": self.log_evidence_ratio,
+            "relaxed": self.relaxed,
             "fit_time_s": t1 - t0,
             "acq_time_s": time.perf_counter() - t1,
         }
         return x
+
+
+#: The stages of :class:`PhysicsModelBO`'s prior check after the given model: model options
+#: over the given ones (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
+RELAXED_STAGES = (
+    {"log_beta_std": 1.0, "f_inf_std": 0.1},
+    {"log_beta_std": 1.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
+)
+
+
+def _extend_theta(old: InverseSqrtPeakModel, new: InverseSqrtPeakModel) -> torch.Tensor:
+    r"""``old``'s fitted :math:`\theta` laid out for ``new`` (a background and shape
+    log-scales that ``old`` did not fit start at 0)."""
+    d, theta = old.dim, old.theta
+    out = new.prior_theta().clone()
+    out[: d + 2] = theta[: d + 2]
+    if old.f_inf_std > 0 and new.f_inf_std > 0:
+        out[d + 2] = theta[d + 2]
+    if old.shape_std > 0 and new.shape_std > 0:
+        out[new._s_index :] = theta[old._s_index :]
+    return out
 
 
 def _travel_limit(value, d: int) -> torch.Tensor | None:

@@ -39,7 +39,7 @@ def test_registry_and_spec_options():
 def test_table_layout_one_row_per_evaluation(tiny_table):
     """One row per evaluation per run, steps 0..budget-1 in order, start at all skews zero."""
     names = Spear3Coupling(1).knob_names
-    expected = ["method", "machine_seed", "step", *names, "y", *TIMING]
+    expected = ["method", "machine_seed", "step", *names, "y", *TIMING, "notice"]
     expected += ["f_true", "best_f_true", "f0", "f_star", "gain_fraction"]
     assert list(tiny_table.columns) == expected
     counts = tiny_table.groupby(["method", "machine_seed"], sort=False).size()
@@ -173,3 +173,11 @@ def test_each_machine_has_its_own_loss_rate_map():
     machine = build_machine(1, SPEAR3)
     assert machine.loss_rate_map == maps[0]
     assert build_machine(1, SPEAR3, machine_maps=False).loss_rate_map == LOSS_RATE_MAP
+    # factors of the model's map, the same for every machine (the mismatch suite's machines)
+    for seed in (1, 2):
+        f_inf, g = build_machine(seed, SPEAR3, machine_maps=(1.6, 0.5)).loss_rate_map
+        assert f_inf == pytest.approx(1.6 * LOSS_RATE_MAP[0], rel=1e-12)
+        assert g == pytest.approx(0.5 * LOSS_RATE_MAP[1], rel=1e-12)
+    assert build_machine(1, SPEAR3, machine_maps=(0.0, 1.0)).loss_rate_map[0] == 0.0
+    with pytest.raises(ValueError, match="loss-map factors"):
+        build_machine(1, SPEAR3, machine_maps=(1.0, 0.0))

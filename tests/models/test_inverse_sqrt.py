@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel, _NumpyObjective
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
 
@@ -485,6 +485,35 @@ def test_closed_form_gradient_of_the_posterior_equals_autograd(prior, options, e
     t = theta.clone().requires_grad_(True)
     v_ref = model._neg_log_post(t, X, Y)
     (g_ref,) = torch.autograd.grad(v_ref, t)
-    v, grad = model._neg_log_post_and_grad(theta, X, Y)
-    torch.testing.assert_close(v, v_ref.detach(), rtol=1e-12, atol=0)
+    v, grad = _NumpyObjective(model, X, Y)(theta.numpy())
+    assert v == pytest.approx(float(v_ref), rel=1e-12)
+    grad = torch.from_numpy(grad)
     torch.testing.assert_close(grad, g_ref, rtol=1e-10, atol=1e-10 * float(g_ref.abs().max()))
+    # a step that overflows exp(log c) gives non-finite numbers (rejected by the fit), no error
+    huge = theta.clone()
+    huge[D] = 1e4
+    v_huge, g_huge = _NumpyObjective(model, X, Y)(huge.numpy())
+    assert not (np.isfinite(v_huge) and np.isfinite(g_huge).all())
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"f_inf_std": 0.05}, {"shape_std": 0.5, "f_inf_std": 0.05}, {"residual_std": 0.0}],
+)
+def test_closed_form_gradient_of_the_prediction_equals_autograd(prior, options):
+    """``predict_with_grad``: the mean and sd of ``predict`` and their gradients in the setting
+    equal autograd's (1e-10), with and without the residual GP, background and shape fits."""
+    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
+    g = torch.Generator().manual_seed(5)
+    X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
+    Y = F_INF + 0.3 + 0.1 * torch.rand(20, generator=g, dtype=DT)
+    model.fit(X, Y)
+    Z = ((torch.rand(6, D, generator=g, dtype=DT) * 2 - 1) * 0.02).requires_grad_(True)
+    mu_ref, sd_ref = model.predict(Z)
+    (dmu_ref,) = torch.autograd.grad(mu_ref.sum(), Z, retain_graph=True)
+    (dsd_ref,) = torch.autograd.grad(sd_ref.sum(), Z)
+    mu, sd, dmu, dsd = model.predict_with_grad(Z.detach())
+    torch.testing.assert_close(mu, mu_ref.detach(), rtol=1e-12, atol=0)
+    torch.testing.assert_close(sd, sd_ref.detach(), rtol=1e-12, atol=0)
+    for got, ref in ((dmu, dmu_ref), (dsd, dsd_ref)):
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-10 * float(ref.abs().max()))

@@ -1,0 +1,150 @@
+"""PhysicsModelBO: the prior check (misfit statistic, rejection, relaxed refit, notice)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.optimizers.physics_bo import RELAXED_STAGES, PhysicsModelBO, _extend_theta
+from pigp_torch.prior import PhysicsPrior
+
+DT = torch.float64
+D = 5
+F_INF = 0.35
+HALF = 0.015
+
+
+def _prior(precision: torch.Tensor, noise: float = 0.02) -> PhysicsPrior:
+    return PhysicsPrior(
+        x0=torch.zeros(D, dtype=DT), f_x0=0.9, f_inf=F_INF, precision=precision, amplitude=0.1,
+        noise=noise, knob_names=[f"k{i}" for i in range(D)],
+        bounds=torch.tensor([[-HALF] * D, [HALF] * D], dtype=DT),
+    )  # fmt: skip
+
+
+def _precision(seed: int) -> torch.Tensor:
+    g = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(g.standard_normal((D, D)))
+    P = torch.tensor(Q @ np.diag(np.geomspace(1.0, 40.0, D)) @ Q.T) / HALF**2
+    return (P + P.T) / 2
+
+
+def _machine(prior: PhysicsPrior, mu, c: float = 0.5):
+    """A machine whose loss rate is the exact physics form of ``prior``'s shape."""
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    theta = torch.cat([torch.as_tensor(mu, dtype=DT), torch.tensor([math.log(c), 0.0], dtype=DT)])
+    return lambda x: float(model.form(x.unsqueeze(0), theta)[0])
+
+
+def _run(bo: PhysicsModelBO, f, steps: int, noise: float, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.zeros(D, dtype=DT)
+    zs = []
+    for _ in range(steps):
+        bo.tell(x, f(x) + noise * float(torch.randn((), generator=gen, dtype=DT)))
+        x = bo.ask()
+        zs.append(bo.last_info["misfit_z"])
+    return zs
+
+
+MU = [0.007, -0.006, 0.004, -0.002, 0.006]
+
+
+def test_a_right_prior_is_kept():
+    """The machine is the prior's own physics form (other centre and depth): over 40 noisy
+    readings the misfit stays near N(0, 1) and the prior is never rejected."""
+    prior = _prior(_precision(0))
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    zs = _run(bo, _machine(prior, MU), 40, prior.noise)
+    checked = [z for z in zs if z is not None]
+    assert len(checked) >= 25  # checked from p + 5 = 12 readings on
+    assert max(checked) < bo.check_z
+    assert not bo.relaxed and bo.notices == []
+
+
+def test_a_wrong_shape_is_rejected_once_with_a_notice_and_a_relaxed_refit():
+    """The machine's shape is another random rotation of the spectrum: the misfit crosses the
+    threshold, the model is rebuilt with the relaxed options (shape scales and background
+    fitted), refitted with a smaller misfit, and one notice says when and why."""
+    prior = _prior(_precision(0))
+    machine_prior = _prior(_precision(7))
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    _run(bo, _machine(machine_prior, MU, c=0.3), 40, prior.noise)
+    assert bo.relaxed
+    assert len(bo.notices) == 1
+    note = bo.notices[0]
+    assert note["kind"] == "prior_rejected"
+    assert note["z"] > bo.check_z and note["n"] >= D + 2 + 5
+    assert note["at_told"] == note["n"]
+    assert note["nu"] == note["n"] - (D + 2)
+    assert note["z"] == pytest.approx((note["chi2"] - note["nu"]) / math.sqrt(2 * note["nu"]))
+    assert "rejected after" in note["message"] and f"{note['n']} readings" in note["message"]
+    last = RELAXED_STAGES[-1]
+    assert bo.stage == note["stage"] == len(RELAXED_STAGES)  # a misfit goes to the last stage
+    assert bo.model.shape_std == last["shape_std"]
+    assert bo.model.f_inf_std == last["f_inf_std"]
+    assert bo.model.log_beta_std == last["log_beta_std"]
+    assert bo.model.n_params == 2 * D + 3
+
+
+def test_misfit_is_the_chi_square_z_score_of_the_fitted_form():
+    prior = _prior(_precision(0))
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2)
+    g = torch.Generator().manual_seed(1)
+    X = (torch.rand(15, D, generator=g, dtype=DT) * 2 - 1) * HALF
+    Y = F_INF + 0.3 + 0.05 * torch.rand(15, generator=g, dtype=DT)
+    bo.model.fit(X, Y)
+    z, chi2, nu = bo.misfit(X, Y)
+    r = (Y - bo.model.form(X)) / bo.model.noise
+    assert chi2 == pytest.approx(float((r**2).sum()), rel=1e-12)
+    assert nu == 15 - (D + 2)
+    assert z == pytest.approx((chi2 - nu) / math.sqrt(2 * nu), rel=1e-12)
+
+
+def test_prior_check_off_and_validation():
+    prior = _prior(_precision(0))
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2, prior_check=False)
+    _run(bo, _machine(_prior(_precision(7)), MU, c=0.3), 25, prior.noise)
+    assert not bo.relaxed and bo.notices == [] and bo.last_info["misfit_z"] is None
+    for bad in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="check_z"):
+            PhysicsModelBO(prior.bounds, prior, check_z=bad)
+
+
+def test_extend_theta_keeps_the_fit_and_starts_new_parameters_at_zero():
+    prior = _prior(_precision(0))
+    old = InverseSqrtPeakModel(prior, prior.bounds)
+    old.theta = torch.arange(D + 2, dtype=DT) / 10
+    new = InverseSqrtPeakModel(prior, prior.bounds, f_inf_std=0.1, shape_std=1.0)
+    out = _extend_theta(old, new)
+    assert out.shape == (2 * D + 3,)
+    torch.testing.assert_close(out[: D + 2], old.theta)
+    assert float(out[D + 2 :].abs().max()) == 0.0
+
+
+def test_center_mean_moves_the_centre_prior():
+    prior = _prior(_precision(0))
+    shift = torch.full((D,), 0.004, dtype=DT)
+    model = InverseSqrtPeakModel(prior, prior.bounds, center_mean=shift)
+    torch.testing.assert_close(model.prior_theta()[:D], shift)
+    with pytest.raises(ValueError, match="center_mean"):
+        InverseSqrtPeakModel(prior, prior.bounds, center_mean=[0.0, 1.0])
+
+
+def test_a_wrong_scale_moves_on_by_the_evidence():
+    """The machine's peak is the prior's shape 8x broader (a wrong calibration of the scale):
+    the residuals can stay small, but the evidence of the stage with a free scale wins and the
+    check moves there with a notice that gives the log-evidence lead."""
+    prior = _prior(_precision(0))
+    broad = _prior(_precision(0) / 8.0)
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4, check_every=1)
+    _run(bo, _machine(broad, [0.004, -0.003, 0.002, -0.001, 0.003], c=0.8), 40, prior.noise)
+    assert bo.relaxed
+    evidence = [n for n in bo.notices if n["log_evidence_ratio"] is not None]
+    assert evidence and evidence[0]["log_evidence_ratio"] > bo.evidence_margin
+    assert "log evidence" in evidence[0]["message"]
+    assert bo.model.log_beta_std == RELAXED_STAGES[0]["log_beta_std"] or bo.stage == 2
