@@ -67,6 +67,9 @@ DRIVER = textwrap.dedent(
 @pytest.mark.slow
 def test_a_badger_routine_runs_pigp_physics_over_channel_access(tmp_path):
     env = {**os.environ, "HOME": str(tmp_path), "QT_QPA_PLATFORM": "offscreen"}
+    # Badger writes $HOME/.config/config.yaml but does not create the folder (an existing
+    # user's home has it; before the package root imported lazily, matplotlib made it)
+    (tmp_path / ".config").mkdir()
     proc = subprocess.run(
         [sys.executable, "-c", DRIVER], capture_output=True, text=True, timeout=300, env=env,
         cwd=tmp_path,
