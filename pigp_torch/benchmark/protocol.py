@@ -48,7 +48,7 @@ from pigp_torch.simulation.spec import RingSpec, as_ring_spec
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
 #: Model rings in the error ensemble that gives the prior's ``center_cov`` and ``peak_shape``
-#: (~3-5 min to compute on one core).
+#: (one optimum search each).
 ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
@@ -153,8 +153,8 @@ def model_prior(
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
     optimum, and ``peak_shape``, the mean shape of the peak, over ``n`` more model rings with
     error seeds :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
-    (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, ~3-7 s a ring; ``progress``
-    prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
+    (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, one optimum search a ring;
+    ``progress`` prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
 
     ``model``: a model ring built elsewhere (e.g. re-tuned, see
     :mod:`~pigp_torch.benchmark.mismatch`) instead of ``ring.build(model_seed)``; its ensemble

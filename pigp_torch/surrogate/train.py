@@ -167,11 +167,11 @@ def train_surrogate(
             "near-optimum" subset of the report.
         seed: seeds the initialization, the split and the shuffling (same seed, same weights).
         device: ``"cpu"`` or ``"cuda"``; training runs there, the returned model is on CPU.
-        dtype: training precision (``torch.float32`` default: float64 gave the same Hessian to
-            3 digits at 2-3x the time).
+        dtype: training precision (``torch.float32`` default; float64 is slower and, for
+            these networks, does not change the prior's Hessian beyond its own noise).
         num_threads: CPU threads for the fit (restored afterwards); ``None`` keeps torch's
             setting. A network this small gains nothing from intra-op parallelism, and on a
-            shared machine two threads were measured 20-100x slower than one (barrier waits).
+            shared machine more threads are slower than one (they wait at barriers).
         progress: show a tqdm progress bar.
 
     Returns:
