@@ -12,7 +12,7 @@ knobs, budgets 100 / 300 evaluations).
         --methods xopt-ucb xopt-ucb-travel --workers 1 -o runs/table_xopt.csv
 
 ``pigp-physics-oracle`` (:data:`pigp_torch.benchmark.oracle.ORACLE`, each machine's own shape,
-background and peak) is accepted as a reference; ``--suffix -exact`` labels a run with another
+background and peak) is accepted as a reference; ``--suffix=-exact`` labels a run with another
 prior file.
 """
 
