@@ -26,34 +26,15 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pandas as pd
+from screen_physics import parse_variant  # the sibling script (benchmarks/ is on sys.path)
 
 from pigp_torch.benchmark import METHODS, run_benchmark
 from pigp_torch.benchmark.mismatch import cases
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
 from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
-
-
-def parse_seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = (int(v) for v in text.split("-"))
-        return list(range(a, b + 1))
-    return [int(v) for v in text.split(",")]
-
-
-def parse_variant(text: str):
-    """``name`` or ``name=key=value,key=value`` -> (name, options)."""
-    name, _, rest = text.partition("=")
-    options = {}
-    for item in filter(None, rest.split(",")):
-        key, value = item.split("=")
-        if value in ("True", "False"):
-            options[key] = value == "True"
-        else:
-            number = float(value) if "." in value else int(value)
-            options[key] = value if value.isalpha() else number
-    return name, options
 
 
 def cached_prior(cache: Path, key: str, build) -> PhysicsPrior:
@@ -97,7 +78,7 @@ def main(argv=None) -> int:
     p.add_argument("--cache", default="runs/mismatch_priors", help="folder of built priors")
     p.add_argument("-o", "--out", default="runs/mismatch.csv")
     args = p.parse_args(argv)
-    seeds = parse_seeds(args.seeds)
+    seeds = seed_list(args.seeds)
     cache = Path(args.cache)
     if args.prior:
         base = PhysicsPrior.load(args.prior)

@@ -26,15 +26,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
 from pigp_torch.benchmark.oracle import ORACLE
+from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"1-24"`` or ``"1,3,5"`` -> list of ints."""
-    if "-" in text:
-        a, b = (int(v) for v in text.split("-"))
-        return list(range(a, b + 1))
-    return [int(v) for v in text.split(",")]
 
 
 def main(argv=None) -> int:
@@ -49,7 +42,7 @@ def main(argv=None) -> int:
     prior = PhysicsPrior.load(args.prior)
     known = {**METHODS, ORACLE.name: ORACLE}  # the oracle is a reference, not a product method
     specs = [known[m].with_options(name=m + args.suffix) for m in args.methods]
-    df = run_benchmark(specs, parse_seeds(args.seeds), prior=prior, n_workers=args.workers)
+    df = run_benchmark(specs, seed_list(args.seeds), prior=prior, n_workers=args.workers)
     df.to_csv(args.out, index=False)
     cols = ["n_reached_95", "steps_to_95_median", "gain_20_median", "gain_40_median",
             "gain_100_median", "ask_time_s_median"]  # fmt: skip

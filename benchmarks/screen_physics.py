@@ -25,12 +25,18 @@ from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
 
 
 def parse_variant(text: str):
-    """``name`` or ``name=key=value,key=value`` -> (name, options)."""
+    """``name`` or ``name=key=value,key=value`` -> (name, options); values are numbers,
+    ``True``/``False`` or words."""
     name, _, rest = text.partition("=")
     options = {}
     for item in filter(None, rest.split(",")):
         key, value = item.split("=")
-        options[key] = value if value.isalpha() else float(value) if "." in value else int(value)
+        if value in ("True", "False"):
+            options[key] = value == "True"
+        elif value.isalpha():
+            options[key] = value
+        else:
+            options[key] = float(value) if "." in value else int(value)
     return name, options
 
 
