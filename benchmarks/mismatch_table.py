@@ -74,7 +74,7 @@ def main(argv=None) -> int:
             f"{fmt(meds['ml2'])} | {fmt(meds['xopt-ucb'])} | {ok(rule100)} | {ok(rule40)} | "
             f"{moved} |"
         )
-    print(f"machines: seeds {seeds}")
+    print(f"machines: seeds {[int(s) for s in seeds]}")
     print("\n".join(rows))
     return 0
 
