@@ -32,33 +32,13 @@ closer by luck), and a real run must also climb from the start point and learn
 :math:`\boldsymbol\mu` first. A machine whose ``n95`` is near or above 40 cannot be expected to
 reach 95 % within 40 evaluations by any method that must find its optimum from readings.
 
-Measured on the 12 spear3-13 machine seeds (prior: model ring 0 + 40 ensemble rings; 20 replays):
-
-====  =====  ======  =====  ====  ===============================
-seed  bar    beyond  free   n95   replay: mean regret / bar, share
-====  =====  ======  =====  ====  ===============================
-1     0.060  0.75    13     23    0.83, 0.70
-2     0.016  1.22    11     101   1.16, 0.50
-3     0.055  0.43    13     26    0.99, 0.60
-4     0.063  0.38    13     25    0.95, 0.65
-5     0.059  0.46    13     28    1.00, 0.55
-6     0.029  1.08    12     46    1.38, 0.25
-7     0.035  0.46    13     39    0.99, 0.50
-8     0.066  0.51    13     23    0.88, 0.50
-9     0.012  1.63    11     157   1.12, 0.45
-10    0.010  1.40    11     185   2.45, 0.35
-11    0.017  1.18    10     79    1.73, 0.20
-12    0.015  1.65    10     89    1.12, 0.60
-====  =====  ======  =====  ====  ===============================
-
-(``beyond``: largest knob of the unconstrained optimum in units of the knob limit; ``free``:
-knobs off a bound at the box optimum.) The replays agree with the Laplace estimate inside the box
-(mean regret 0.83-1.0 of the bar at ``n95``) and show it optimistic on a face (1.1-2.5). The
-median ``n95`` is 42.5, before any climb from the start point.
+The machines are the benchmark's (each with its own loss-rate map unless ``--model-maps``); the
+oracle also knows the machine's own background. Results: ``docs/results.md``.
 
 Usage::
 
-    python benchmarks/information_bound.py --seeds 1 2 3 4 5 6 7 8 9 10 11 12 --replays 20
+    python benchmarks/information_bound.py --prior runs/prior_surrogate.json \
+        --seeds $(seq 1 24) --csv runs/n95.csv
 """
 
 from __future__ import annotations
