@@ -1,4 +1,4 @@
-r"""How far is pigp-physics from the optimum, and is it the model or the noise? (issue 4)
+r"""How far is pigp-physics from the optimum, and is it the model or the noise?
 
 The benchmark asks for 95 % of the achievable gain. For the physics form
 :math:`f = f_\infty + (c + (\mathbf x-\boldsymbol\mu)^\top B(\mathbf x-\boldsymbol\mu))^{-1/2}`

@@ -1,4 +1,4 @@
-r"""PI-GP vs ML-II with all 72 skew windings as knobs (issue 6, part 3).
+r"""PI-GP vs ML-II with all 72 skew windings as knobs.
 
 Does the physics prior's advantage grow with dimension? The "spear3-13" protocol
 (:mod:`pigp_torch.benchmark.protocol`) at ``knobs="all72"``: machines ``Spear3Coupling(s,

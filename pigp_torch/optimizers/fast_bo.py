@@ -21,9 +21,10 @@ determinism rules) with its own exact posterior:
 
 Why hand-written rather than BoTorch: a BoTorch ``SingleTaskGP`` cannot be grown by one row
 (``condition_on_observations`` builds a new model and its caches each time, with the autograd
-overhead of GPyTorch on every acquisition evaluation); the issue's 30 ms step budget leaves no
-room for that. The posterior is checked against :func:`~pigp_torch.models.physics_informed_gp`
-to 1e-9 and the proposals against ``optimize_acqf`` in the tests.
+overhead of GPyTorch on every acquisition evaluation); an online step budget of tens of
+milliseconds leaves no room for that. The posterior is checked against
+:func:`~pigp_torch.models.physics_informed_gp` to 1e-9 and the proposals against
+``optimize_acqf`` in the tests.
 """
 
 from __future__ import annotations
@@ -63,8 +64,8 @@ SOLVER_DEFAULTS = {
     "lbfgsb": {"maxiter": 200, "ftol": 2.220446049250313e-09, "gtol": 1e-5, "maxcor": 10},
 }
 #: ``method="auto"`` uses Newton up to this many knobs: its Hessian costs :math:`O(n^2 d)` per
-#: start; at 72 knobs L-BFGS-B was 3-5x faster, at 13 knobs Newton needed 2-4x fewer acquisition
-#: evaluations for the same or better values (wall times within noise on a loaded 2-core host).
+#: start, so at many knobs L-BFGS-B is the cheaper search, while at few knobs Newton needs fewer
+#: acquisition evaluations for the same or better values (``pigp bench bo`` measures both).
 NEWTON_MAX_DIM = 32
 #: Damping multipliers tried at once in each round of :func:`maximize_in_unit_box`.
 DAMPING_TRIALS = np.array([1.0, 4.0, 16.0, 64.0])
