@@ -20,14 +20,7 @@ from pigp_torch.machine import GuardedMachine, MachineError, ReadError
 from pigp_torch.optimizers import OPTIMIZERS, NelderMead
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.runlog import read_log, replay
-
-D = torch.float64
-BOUNDS = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
-X_STAR = torch.tensor([0.3, -0.2], dtype=D)
-
-
-def bowl(x) -> float:
-    return float(1.0 - ((torch.as_tensor(x, dtype=D) - X_STAR) ** 2).sum())
+from tests.loop.problems import BOUNDS, D, bowl
 
 
 class Walk(AskTellOptimizer):
