@@ -70,7 +70,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--prior", default=None, help="the benchmark's prior JSON (default: exact)")
     p.add_argument("--seeds", default="1-24", help="machine seeds (default 1-24)")
-    p.add_argument("--cases", nargs="*", default=None, help="case names (default: all)")
+    p.add_argument("--cases", nargs="*", default=None,
+                   help="case names, run in the order given (default: all)")
     p.add_argument("--variants", nargs="*", default=["pigp-physics"],
                    help="pigp-physics variants: name or name=key=value,...")  # fmt: skip
     p.add_argument("--baselines", nargs="*", default=["ml2", "xopt-ucb"])
@@ -103,7 +104,8 @@ def main(argv=None) -> int:
         unknown = set(args.cases) - {c.name for c in suite}
         if unknown:
             raise SystemExit(f"unknown cases {sorted(unknown)}; known: {[c.name for c in suite]}")
-        suite = [c for c in suite if c.name in args.cases]
+        by_name = {c.name: c for c in suite}
+        suite = [by_name[n] for n in dict.fromkeys(args.cases)]  # in the order given
     variants = [parse_variant(v) for v in args.variants]
     frames = []
     for case in suite:
