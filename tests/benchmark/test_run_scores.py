@@ -1,0 +1,53 @@
+"""benchmarks/run_scores.py: one row per run, with the case, compute per ask and the prior check."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from tests.benchmark.test_scoring import _run
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "run_scores.py"
+
+
+@pytest.fixture(scope="module")
+def script():
+    spec = importlib.util.spec_from_file_location("run_scores", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _with(run, ask_ms, notice_at=None):
+    run = run.assign(ask_time_s=np.asarray(ask_ms, dtype=float) / 1e3, notice=None)
+    if notice_at is not None:
+        run.loc[run["step"] == notice_at, "notice"] = "prior_rejected"
+    return run
+
+
+def test_scores_per_case_and_run(script, tmp_path):
+    # run 1 reaches 1.45 = f0 + 0.95 (f* - f0) at evaluation 4; run 2 never (budget 5 + 1)
+    a = _with(_run("a", 1, [0.5, 0.9, 1.2, 1.46, 1.44]), [0, 10, 30, 20, 40], notice_at=2)
+    b = _with(_run("a", 2, [0.5, 0.6, 0.55, 0.7, 1.0]), [0, 5, 5, 7, 9])
+    raw = pd.concat([a.assign(case="scale×10"), b.assign(case="scale×10")], ignore_index=True)
+    path = tmp_path / "raw.csv"
+    raw.to_csv(path, index=False)
+    out = tmp_path / "scores.csv"
+    assert script.main([str(path), "-o", str(out)]) == 0
+    s = pd.read_csv(out)
+    assert list(s["case"]) == ["scale×10", "scale×10"]
+    assert list(s["steps_to_95"]) == [4, 6]
+    assert list(s["reached_95"]) == [True, False]
+    # the median ask excludes the start point (evaluation 1): (20 + 30) / 2 and (5 + 7) / 2
+    assert s["ask_ms_median"].tolist() == pytest.approx([25.0, 6.0])
+    assert s["prior_rejected_at"].iloc[0] == 3 and np.isnan(s["prior_rejected_at"].iloc[1])
+
+
+def test_a_run_table_without_cases_is_the_control(script):
+    s = script.scores_of(_with(_run("b", 1, [0.5, 1.5, 0.4]), [0, 1, 2]))
+    assert list(s["case"]) == ["control"] and int(s["steps_to_95"].iloc[0]) == 2
+    assert s["gain_20"].isna().all()  # the run is shorter than 20 evaluations
