@@ -27,12 +27,12 @@ def scores_of(df: pd.DataFrame) -> pd.DataFrame:
     out = []
     for case, g in df.groupby("case", sort=False):
         s = run_scores(g).assign(case=case)
+        keys = pd.MultiIndex.from_frame(s[["method", "machine_seed"]])
         ask = g[g["step"] > 0].groupby(["method", "machine_seed"])["ask_time_s"].median()
-        s["ask_ms_median"] = [1e3 * ask.get((m, k), float("nan"))
-                              for m, k in zip(s["method"], s["machine_seed"])]  # fmt: skip
+        s["ask_ms_median"] = 1e3 * ask.reindex(keys).to_numpy()
         moved = g[g["notice"].eq("prior_rejected")] if "notice" in g else g.iloc[:0]
-        first = (moved.groupby(["method", "machine_seed"])["step"].min() + 1).to_dict()
-        s["prior_rejected_at"] = [first.get((m, k)) for m, k in zip(s["method"], s["machine_seed"])]
+        first = moved.groupby(["method", "machine_seed"])["step"].min() + 1
+        s["prior_rejected_at"] = first.reindex(keys).to_numpy()
         out.append(s)
     cols = ["case", "method", "machine_seed", "budget", "steps_to_95", "reached_95",
             "steps_within", "gain_20", "gain_40", "gain_100", "ask_ms_median",
