@@ -70,8 +70,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--prior", default=None, help="the benchmark's prior JSON (default: exact)")
     p.add_argument("--seeds", default="1-24", help="machine seeds (default 1-24)")
-    p.add_argument("--cases", nargs="*", default=None,
-                   help="case names, run in the order given (default: all)")
+    p.add_argument(
+        "--cases", nargs="*", default=None, help="case names, run in the order given (default: all)"
+    )
     p.add_argument("--variants", nargs="*", default=["pigp-physics"],
                    help="pigp-physics variants: name or name=key=value,...")  # fmt: skip
     p.add_argument("--baselines", nargs="*", default=["ml2", "xopt-ucb"])
