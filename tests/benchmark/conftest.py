@@ -1,5 +1,8 @@
 """A tiny benchmark run shared by the protocol and figure tests (cheap settings, 2 machines)."""
 
+import importlib.util
+from pathlib import Path
+
 import pytest
 
 from pigp_torch.benchmark import METHODS, model_prior, run_benchmark
@@ -39,3 +42,12 @@ def tiny_table(tiny_prior):
         prior=tiny_prior,
         optimum_starts=OPTIMUM_STARTS,
     )
+
+
+def load_script(name: str):
+    """Import ``benchmarks/<name>.py`` (a script, not a package module) as a module."""
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

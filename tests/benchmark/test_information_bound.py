@@ -2,27 +2,21 @@
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import math
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
 
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from tests.benchmark.conftest import load_script
 from tests.models.test_inverse_sqrt import DT, D, synthetic_prior, true_theta
-
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "information_bound.py"
 
 
 @pytest.fixture(scope="module")
 def bound():
-    spec = importlib.util.spec_from_file_location("information_bound", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("information_bound")
 
 
 @pytest.mark.parametrize("mu_scale", [0.3, 1.6])  # optimum inside the box, beyond a face

@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 import pytest
 
+from tests.benchmark.conftest import load_script
 from tests.benchmark.test_scoring import _run
-
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "run_scores.py"
 
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("run_scores", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("run_scores")
 
 
 def _with(run, ask_ms, notice_at=None):
