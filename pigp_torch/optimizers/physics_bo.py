@@ -102,6 +102,9 @@ class PhysicsModelBO(AskTellOptimizer):
             of 20 to 1).
         check_every: period of the evidence comparison in asks (default 3; it costs one more
             fit per later stage).
+        evidence_from: readings from which the evidence comparison runs (default ``None``:
+            :math:`p + 5`, as the misfit test; the comparison needs no residual degrees of
+            freedom, so it may start earlier).
         relax: the stages after the given model (default :data:`RELAXED_STAGES`: first the
             scale and the background free, ``log_beta_std = 1``, ``f_inf_std = 0.1``; then also
             the shape's eigen-scales, ``shape_std = 1``, and a centre prior 4x wider in
@@ -140,6 +143,7 @@ class PhysicsModelBO(AskTellOptimizer):
         check_z: float = 4.0,
         evidence_margin: float = 3.0,
         check_every: int = 3,
+        evidence_from: int | None = None,
         relax=None,
         maximize: bool = True,
         **model_options,
@@ -167,6 +171,9 @@ class PhysicsModelBO(AskTellOptimizer):
         if int(check_every) < 1:
             raise ValueError(f"check_every must be >= 1, got {check_every}")
         self.check_every = int(check_every)
+        if evidence_from is not None and int(evidence_from) < 2:
+            raise ValueError(f"evidence_from must be >= 2 readings, got {evidence_from}")
+        self.evidence_from = None if evidence_from is None else int(evidence_from)
         self.relax = [dict(o) for o in (RELAXED_STAGES if relax is None else relax)]
         if not self.relax:
             raise ValueError("relax needs at least one stage of model options")
@@ -282,18 +289,20 @@ class PhysicsModelBO(AskTellOptimizer):
     def _check_prior(self, X: torch.Tensor, Y: torch.Tensor) -> None:
         """One step of ``prior_check``: misfit and evidence; on a rejection, move and notify."""
         last = len(self.relax)
-        if self.stage == last or len(Y) < self.model.n_params + 5:
+        n_misfit = self.model.n_params + 5
+        n_evidence = n_misfit if self.evidence_from is None else self.evidence_from
+        if self.stage == last or len(Y) < min(n_misfit, n_evidence):
             return
         z, chi2, nu = self.misfit(X, Y)
         self.misfit_z = z
         target, reasons, fitted = None, [], set()
-        if z > self.check_z:
+        if len(Y) >= n_misfit and z > self.check_z:
             target = last
             reasons.append(
                 f"the fitted physics form misses them by chi2/nu = {chi2 / nu:.2f} "
                 f"(z = {z:.1f} > {self.check_z:g})"
             )
-        elif self.n_told % self.check_every == 0:
+        elif len(Y) >= n_evidence and self.n_told % self.check_every == 0:
             here = self.model.log_evidence()
             ratios = {}
             for stage in range(self.stage + 1, last + 1):

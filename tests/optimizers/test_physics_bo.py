@@ -148,3 +148,29 @@ def test_a_wrong_scale_moves_on_by_the_evidence():
     assert evidence and evidence[0]["log_evidence_ratio"] > bo.evidence_margin
     assert "log evidence" in evidence[0]["message"]
     assert bo.model.log_beta_std == RELAXED_STAGES[0]["log_beta_std"] or bo.stage == 2
+
+
+def test_evidence_from_starts_the_evidence_comparison_earlier():
+    """By default the evidence comparison waits for p + 5 readings (as the misfit test);
+    ``evidence_from`` starts it at that many readings, while the misfit test still waits."""
+    prior = _prior(_precision(0))
+    broad = _machine(_prior(_precision(0) / 8.0), [0.004, -0.003, 0.002, -0.001, 0.003], c=0.8)
+    first = {}
+    for start in (None, 4):
+        bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4, check_every=1,
+                            evidence_from=start)  # fmt: skip
+        p = bo.model.n_params
+        gen = torch.Generator().manual_seed(0)
+        x = torch.zeros(D, dtype=DT)
+        seen = None
+        for _ in range(p + 6):
+            bo.tell(x, broad(x) + prior.noise * float(torch.randn((), generator=gen, dtype=DT)))
+            x = bo.ask()
+            if seen is None and bo.log_evidence_ratio is not None:
+                seen = bo.n_told
+        first[start] = (seen, p)
+    (default_seen, p), (early_seen, _) = first[None], first[4]
+    assert default_seen == p + 5
+    assert early_seen == 4
+    with pytest.raises(ValueError, match="evidence_from"):
+        PhysicsModelBO(prior.bounds, prior, evidence_from=1)
