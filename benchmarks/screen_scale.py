@@ -1,109 +1,82 @@
-r"""Screen of pigp-physics prior-check variants on the mismatch cases (tuning machines only).
+r"""Screen of pigp-physics prior-check variants on mismatch cases (tuning machines only).
 
-Usage: ``python benchmarks/screen_scale.py VARIANTS CASES SEEDS BUDGET OUT`` with VARIANTS and
-CASES comma-separated (variant names: the keys of ``V`` below), SEEDS ``a-b`` (>= 101), BUDGET
-evaluations per run; prints one row per run (gain after 20 and 40, evaluation of the first prior
-notice or -1) and the medians, and writes them to OUT (CSV).
+``python benchmarks/screen_scale.py --variants D R RE --cases scale×10 control --seeds 101-104
+--budget 40 -o runs/screen_scale.csv``: one run per variant, case and machine (the kept prior
+``docs/data/prior_spear3_seed0_surrogate.json``); prints each run's gain after 20 and 40
+evaluations and the evaluation of its first prior notice, then the medians; writes the rows to
+``-o`` after every run. Variant names are the keys of :data:`VARIANTS`.
 """
 
-import sys
-import time
+from __future__ import annotations
+
+import argparse
 
 import pandas as pd
 
 from pigp_torch.benchmark.mismatch import cases
 from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
 
-S2 = {"shape_std": 1.0, "center_cov_scale_factor": 4.0}
-V = {
+PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
+
+
+def wide_stages(log_beta_std: float = 3.0, scale_only_first: bool = False) -> list[dict]:
+    """The default stages of the prior check with a wider ``log_beta_std`` (optionally first a
+    stage that frees only the scale)."""
+    free = {"log_beta_std": log_beta_std, "f_inf_std": 0.1}
+    shape = {**free, "shape_std": 1.0, "center_cov_scale_factor": 4.0}
+    return ([{"log_beta_std": log_beta_std}] if scale_only_first else []) + [free, shape]
+
+
+#: name -> pigp-physics options (``{}``: the defaults).
+VARIANTS = {
     "D": {},
-    "W": {
-        "log_beta_std": 1.0,
-        "f_inf_std": 0.1,
-        "relax": [
-            {"log_beta_std": 3.0, "f_inf_std": 0.1},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1, **S2},
-        ],
-    },
-    "R": {
-        "evidence_margin": 1.5,
-        "relax": [
-            {"log_beta_std": 3.0, "f_inf_std": 0.1},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1, **S2},
-        ],
-    },
-    "R3": {
-        "evidence_margin": 1.0,
-        "relax": [
-            {"log_beta_std": 3.0, "f_inf_std": 0.1},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1, **S2},
-        ],
-    },
-    "Rb": {
-        "evidence_margin": 1.5,
-        "relax": [
-            {"log_beta_std": 3.0},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1, **S2},
-        ],
-    },
-    "RE": {
-        "evidence_margin": 1.5,
-        "evidence_from": 10,
-        "relax": [
-            {"log_beta_std": 3.0, "f_inf_std": 0.1},
-            {"log_beta_std": 3.0, "f_inf_std": 0.1, **S2},
-        ],
-    },
-    "W1": {
-        "log_beta_std": 1.0,
-        "f_inf_std": 0.1,
-        "relax": [{"log_beta_std": 1.0, "f_inf_std": 0.1, **S2}],
-    },
+    "W": {"log_beta_std": 1.0, "f_inf_std": 0.1, "relax": wide_stages()},
+    "R": {"evidence_margin": 1.5, "relax": wide_stages()},
+    "R3": {"evidence_margin": 1.0, "relax": wide_stages()},
+    "Rb": {"evidence_margin": 1.5, "relax": wide_stages(scale_only_first=True)},
+    "RE": {"evidence_margin": 1.5, "evidence_from": 10, "relax": wide_stages()},
 }
-variants = sys.argv[1].split(",")
-cnames = sys.argv[2].split(",")
-a, b = map(int, sys.argv[3].split("-"))
-budget = int(sys.argv[4])
-out = sys.argv[5]
-if a <= 24:
-    raise SystemExit("tune on machines outside the benchmark seeds 1-24 (use 101 and up)")
-base = PhysicsPrior.load("docs/data/prior_spear3_seed0_surrogate.json")
-half = (Spear3Coupling(1).bounds[1] - Spear3Coupling(1).bounds[0]) / 2
-bycase = {c.name: c for c in cases(lambda **k: None, half)}
-rows = []
-for cn in cnames:
-    case = bycase[cn]
-    prior = case.prior(base)
-    extra = case.options(prior)
-    for v in variants:
-        spec = METHODS["pigp-physics"].with_options(name="pigp-physics", **{**V[v], **extra})
-        for s in range(a, b + 1):
-            t0 = time.time()
-            t = run_one(spec, s, prior, budget=budget, machine_maps=case.machine_maps)
-            g = t.gain_fraction.values
-            moved = (
-                t.step[t.notice.astype(str).str.len() > 0].min()
-                if (t.notice.astype(str).str.len() > 0).any()
-                else -1
-            )
-            rows.append(
-                dict(
-                    case=cn,
-                    variant=v,
-                    seed=s,
-                    g20=g[19],
-                    g40=g[min(39, len(g) - 1)],
-                    gend=g[-1],
-                    moved=moved,
-                    ms=1000 * t.ask_time_s.median(),
-                    wall=time.time() - t0,
-                )
-            )
-            print(rows[-1], flush=True)
-            pd.DataFrame(rows).to_csv(out, index=False)
-d = pd.DataFrame(rows)
-print(d.groupby(["case", "variant"])[["g20", "g40", "gend"]].median())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--variants", nargs="+", default=["D"], choices=sorted(VARIANTS))
+    p.add_argument("--cases", nargs="+", default=["control"])
+    p.add_argument("--seeds", default="101-104", help="tuning machine seeds (>= 101)")
+    p.add_argument("--budget", type=int, default=40)
+    p.add_argument("-o", "--out", default="runs/screen_scale.csv")
+    args = p.parse_args(argv)
+    seeds = seed_list(args.seeds)
+    if min(seeds) <= 24:
+        raise SystemExit("tune on machines outside the benchmark seeds 1-24 (use 101 and up)")
+    base = PhysicsPrior.load(PRIOR)
+    bounds = Spear3Coupling(1).bounds
+    by_name = {c.name: c for c in cases(lambda **k: None, (bounds[1] - bounds[0]) / 2)}
+    rows = []
+    for name in args.cases:
+        case = by_name[name]
+        prior = case.prior(base)
+        for variant in args.variants:
+            options = {**VARIANTS[variant], **case.options(prior)}
+            spec = METHODS["pigp-physics"].with_options(**options)  # same seeds as the table
+            for seed in seeds:
+                run = run_one(spec, seed, prior, budget=args.budget,
+                              machine_maps=case.machine_maps)  # fmt: skip
+                score = run_scores(run, at=(20, 40)).iloc[0]
+                noticed = run.loc[run["notice"].astype(str) != "", "step"]
+                rows.append({"case": name, "variant": variant, "seed": seed,
+                             "gain_20": score["gain_20"], "gain_40": score["gain_40"],
+                             "moved": int(noticed.min()) if len(noticed) else -1})  # fmt: skip
+                print(rows[-1], flush=True)
+                pd.DataFrame(rows).to_csv(args.out, index=False)
+    print(pd.DataFrame(rows).groupby(["case", "variant"])[["gain_20", "gain_40"]].median())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -80,7 +80,7 @@ class PhysicsModelBO(AskTellOptimizer):
             for good, to models with wider priors when it does not (default on). The models
             are the given one (stage 0) and the stages of ``relax``, each a set of options over
             the given ones. From :math:`n \ge p + 5` readings on (:math:`p` parameters of the
-            current model) two tests run:
+            current model; the evidence test from ``evidence_from`` if given) two tests run:
 
             * the misfit of the fitted form at every ask (residual GP excluded),
               :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}`, :math:`\chi^2 = \sum_i (y_i -
