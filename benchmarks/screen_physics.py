@@ -4,7 +4,8 @@ Runs each variant (name=option=value,...) on the given machine seeds under the s
 protocol (own loss-rate map per machine, noise 0.04, 100 evaluations, start at zero knobs) with
 the exact-model prior of model ring 0 and its 40-ring error ensemble, and prints per variant:
 machines at 95 % of the gain, median steps-to-95 %, median gain after 20 / 40 / 100
-evaluations and the median compute per ask.
+evaluations and the median compute per ask. ``--prior FILE`` screens with a kept prior instead
+(e.g. the product's ``docs/data/prior_spear3_seed0_surrogate.json``).
 
     python benchmarks/screen_physics.py --seeds 101-112 --workers 2 \\
         default "fit_bg=f_inf_std=0.03" "beta1=beta=1.0"
@@ -22,6 +23,7 @@ import pandas as pd
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
+from pigp_torch.prior import PhysicsPrior
 
 
 def parse_variant(text: str):
@@ -46,12 +48,20 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", default="101-112", help="tuning machine seeds a-b (>= 101)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--budget", type=int, default=100)
+    p.add_argument(
+        "--prior",
+        help="prior JSON file (default: the exact-model prior of model "
+        "ring 0 with its 40-ring ensemble, computed here)",
+    )
     p.add_argument("-o", "--out", default="runs/screen.csv")
     args = p.parse_args(argv)
     a, b = (int(v) for v in args.seeds.split("-"))
     if a <= 24:
         raise SystemExit("tune on seeds outside the benchmark's 1-24")
-    prior = model_prior(0, center_ensemble=ENSEMBLE_SIZE, progress=True)
+    if args.prior:
+        prior = PhysicsPrior.load(args.prior)
+    else:
+        prior = model_prior(0, center_ensemble=ENSEMBLE_SIZE, progress=True)
     specs = []
     for text in args.variants:
         name, options = parse_variant(text)

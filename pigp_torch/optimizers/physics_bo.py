@@ -50,7 +50,9 @@ class PhysicsModelBO(AskTellOptimizer):
             :meth:`centre_information` instead of the UCB: the reading that most shrinks the
             fitted centre's uncertainty in the metric of :math:`B`. Near the peak the form is
             flat, so readings there say little about where the centre is; the most informative
-            ones lie at about :math:`\sqrt{c/2}` from it in that metric. Off by default.
+            ones lie at about :math:`\sqrt{c/2}` from it in that metric. Default 3 (every
+            third ask; 0 turns it off): on the tuning machines it cut the median steps to 95 %
+            of the gain from 57 to about 40 without lowering the gain after 20.
         adapt_box: shrink and grow the trust box like TuRBO (Eriksson et al. 2019), counting
             asks: a *success* when the best posterior mean over the told points rose by more
             than ``success_tol`` since the previous ask, else a *failure*;
@@ -98,15 +100,17 @@ class PhysicsModelBO(AskTellOptimizer):
             (``kind = "prior_rejected"``, with ``stage``, ``z``, ``chi2``, ``nu``, ``n``,
             ``log_evidence_ratio``) to :attr:`notices` for the run log and the progress line.
         check_z: misfit threshold (default 4).
-        evidence_margin: log-evidence lead that moves to a later stage (default 3 nats, odds
-            of 20 to 1).
+        evidence_margin: log-evidence lead that moves to a later stage (default 1.5 nats, odds
+            of about 4.5 to 1: the later stages nest the given model, so a lead needs readings
+            that the given one explains badly; a wrong scale of the shape leads by only 1-2
+            nats for tens of readings).
         check_every: period of the evidence comparison in asks (default 3; it costs one more
             fit per later stage).
-        evidence_from: readings from which the evidence comparison runs (default ``None``:
+        evidence_from: readings from which the evidence comparison runs (default 10; ``None``:
             :math:`p + 5`, as the misfit test; the comparison needs no residual degrees of
-            freedom, so it may start earlier).
+            freedom, so it may start before the misfit test).
         relax: the stages after the given model (default :data:`RELAXED_STAGES`: first the
-            scale and the background free, ``log_beta_std = 1``, ``f_inf_std = 0.1``; then also
+            scale and the background free, ``log_beta_std = 3``, ``f_inf_std = 0.1``; then also
             the shape's eigen-scales, ``shape_std = 1``, and a centre prior 4x wider in
             variance).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
@@ -129,7 +133,7 @@ class PhysicsModelBO(AskTellOptimizer):
         step_limit: float | None = 0.6,
         n_starts: int = 8,
         exploit_every: int = 0,
-        info_every: int = 0,
+        info_every: int = 3,
         adapt_box: bool = False,
         min_step_limit: float = 0.075,
         success_streak: int = 3,
@@ -141,9 +145,9 @@ class PhysicsModelBO(AskTellOptimizer):
         travel_limit=None,
         prior_check: bool = True,
         check_z: float = 4.0,
-        evidence_margin: float = 3.0,
+        evidence_margin: float = 1.5,
         check_every: int = 3,
-        evidence_from: int | None = None,
+        evidence_from: int | None = 10,
         relax=None,
         maximize: bool = True,
         **model_options,
@@ -420,8 +424,8 @@ class PhysicsModelBO(AskTellOptimizer):
 #: The stages of :class:`PhysicsModelBO`'s prior check after the given model: model options
 #: over the given ones (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
 RELAXED_STAGES = (
-    {"log_beta_std": 1.0, "f_inf_std": 0.1},
-    {"log_beta_std": 1.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
+    {"log_beta_std": 3.0, "f_inf_std": 0.1},
+    {"log_beta_std": 3.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
 )
 
 

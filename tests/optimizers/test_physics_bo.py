@@ -151,8 +151,9 @@ def test_a_wrong_scale_moves_on_by_the_evidence():
 
 
 def test_evidence_from_starts_the_evidence_comparison_earlier():
-    """By default the evidence comparison waits for p + 5 readings (as the misfit test);
-    ``evidence_from`` starts it at that many readings, while the misfit test still waits."""
+    """With ``evidence_from=None`` the evidence comparison waits for p + 5 readings (as the
+    misfit test); ``evidence_from=k`` starts it at k readings, while the misfit test still
+    waits; the default is 10."""
     prior = _prior(_precision(0))
     broad = _machine(_prior(_precision(0) / 8.0), [0.004, -0.003, 0.002, -0.001, 0.003], c=0.8)
     first = {}
@@ -169,8 +170,9 @@ def test_evidence_from_starts_the_evidence_comparison_earlier():
             if seen is None and bo.log_evidence_ratio is not None:
                 seen = bo.n_told
         first[start] = (seen, p)
-    (default_seen, p), (early_seen, _) = first[None], first[4]
-    assert default_seen == p + 5
+    (late_seen, p), (early_seen, _) = first[None], first[4]
+    assert late_seen == p + 5
     assert early_seen == 4
+    assert PhysicsModelBO(prior.bounds, prior).evidence_from == 10
     with pytest.raises(ValueError, match="evidence_from"):
         PhysicsModelBO(prior.bounds, prior, evidence_from=1)
