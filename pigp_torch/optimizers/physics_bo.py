@@ -16,6 +16,9 @@ in the trust box of half-width ``step_limit`` (knobs normalized to :math:`[-1, 1
 told point with the highest posterior mean (a single lucky reading cannot move the box). The UCB is
 maximized by multi-start L-BFGS-B (:func:`pigp_torch._multistart.find_optimum`) from Sobol points
 of the box, the box centre and the fitted centre :math:`\hat{\boldsymbol\mu}` projected into it.
+Every third ask (``info_every``) maximizes instead the information about the fitted centre
+(:meth:`PhysicsModelBO.centre_information`): the UCB alone reads near the fitted peak, where the
+form is flat and says little about where the centre lies.
 """
 
 from __future__ import annotations

@@ -1,0 +1,66 @@
+r"""Compute per ask of ``pigp-physics``: its defaults against a set of options, in one process.
+
+``python benchmarks/ask_time.py --seeds 1-4 --budget 60``: runs the spear3-13 protocol (the kept
+prior ``docs/data/prior_spear3_seed0_surrogate.json``, each machine's own loss-rate map) with
+the defaults and with :data:`BEFORE` (the defaults before the information asks and the earlier
+evidence check), alternating the two machine by machine so that both see the same load, and
+prints per variant the median and 90th percentile of the compute per ask in ms, and the ratio of
+the medians. Shared machines are noisy: read the ratio, not the absolute numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np
+
+from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.commands.compare import seed_list
+from pigp_torch.methods.registry import METHODS
+from pigp_torch.prior import PhysicsPrior
+
+PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
+
+#: The defaults of ``pigp-physics`` before the information asks and the earlier evidence check.
+BEFORE = {
+    "info_every": 0,
+    "evidence_margin": 3.0,
+    "evidence_from": None,
+    "relax": [
+        {"log_beta_std": 1.0, "f_inf_std": 0.1},
+        {"log_beta_std": 1.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
+    ],
+}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", default="1-4", help="machine seeds, e.g. 1-4")
+    p.add_argument("--budget", type=int, default=60, help="evaluations per run")
+    args = p.parse_args(argv)
+    prior = PhysicsPrior.load(PRIOR)
+    variants = {"defaults": {}, "before": BEFORE}
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for seed in seed_list(args.seeds):
+        for name, options in variants.items():
+            spec = METHODS["pigp-physics"].with_options(**options)
+            run = run_one(spec, seed, prior, budget=args.budget, optimum_starts=0)
+            asks = run.loc[run["step"] > 0, "ask_time_s"].to_numpy()
+            times[name].extend(asks.tolist())
+            print(f"machine {seed} {name}: median {1e3 * np.median(asks):.0f} ms per ask",
+                  flush=True)  # fmt: skip
+    medians = {}
+    for name, values in times.items():
+        v = 1e3 * np.asarray(values)
+        medians[name] = float(np.median(v))
+        print(f"{name}: median {medians[name]:.0f} ms, p90 {np.percentile(v, 90):.0f} ms per ask "
+              f"({len(v)} asks)")  # fmt: skip
+    print(f"ratio defaults / before: {medians['defaults'] / medians['before']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
