@@ -60,6 +60,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
             q = g[f"gain_{k}"].quantile([0.25, 0.5, 0.75])
             row[f"gain_{k}"] = f"{q.iloc[1]:.2f} ({q.iloc[0]:.2f}-{q.iloc[2]:.2f})"
         rej = notes[(notes["case"] == case) & (notes["method"] == method)]
+        rej = rej.sort_values("step").drop_duplicates("machine_seed")  # first move of each run
         row["rejected"] = f"{len(rej)}/{len(g)}"
         row["rejected_at"] = float((rej["step"] + 1).median()) if len(rej) else float("nan")
         rows.append(row)

@@ -59,6 +59,7 @@ def main(argv=None) -> int:
         rule100 = g100 >= max(v[1] for v in have) if have else None
         rule40 = all(g40 >= v[0] - 0.05 for v in have) if have else None
         notes = raw[(raw["method"] == "pigp-physics") & (raw.get("notice", "") == "prior_rejected")]
+        notes = notes.sort_values("step").drop_duplicates("machine_seed")  # first move per run
         moved = f"{len(notes)}/{len(phys)}"
         if len(notes):
             moved += f", {float((notes['step'] + 1).median()):.0f}"

@@ -1,6 +1,7 @@
 """A tiny benchmark run shared by the protocol and figure tests (cheap settings, 2 machines)."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -45,8 +46,12 @@ def tiny_table(tiny_prior):
 
 
 def load_script(name: str):
-    """Import ``benchmarks/<name>.py`` (a script, not a package module) as a module."""
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / f"{name}.py"
+    """Import ``benchmarks/<name>.py`` (a script, not a package module) as a module; its folder
+    goes on ``sys.path`` as when the script runs, so that it can import its siblings."""
+    folder = Path(__file__).resolve().parents[2] / "benchmarks"
+    if str(folder) not in sys.path:
+        sys.path.append(str(folder))
+    path = folder / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

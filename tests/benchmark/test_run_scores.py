@@ -44,3 +44,16 @@ def test_a_run_table_without_cases_is_the_control(script):
     s = script.scores_of(_with(_run("b", 1, [0.5, 1.5, 0.4]), [0, 1, 2]))
     assert list(s["case"]) == ["control"] and int(s["steps_to_95"].iloc[0]) == 2
     assert s["gain_20"].isna().all()  # the run is shorter than 20 evaluations
+
+
+def test_the_mismatch_table_counts_runs_that_moved_not_notices():
+    """A run whose prior check moves twice (stage 1, then stage 2) is one run that moved on,
+    at its first move."""
+    table = load_script("mismatch").table
+    a = _with(_run("pigp-physics", 1, [0.5, 0.9, 1.2, 1.46, 1.44]), [0, 1, 1, 1, 1], notice_at=1)
+    a.loc[a["step"] == 3, "notice"] = "prior_rejected"  # the second move of the same run
+    b = _with(_run("pigp-physics", 2, [0.5, 0.6, 0.55, 0.7, 1.0]), [0, 1, 1, 1, 1], notice_at=3)
+    c = _with(_run("pigp-physics", 3, [0.5, 0.6, 0.55, 0.7, 1.0]), [0, 1, 1, 1, 1])
+    row = table(pd.concat([a, b, c], ignore_index=True).assign(case="rot45")).iloc[0]
+    assert row["rejected"] == "2/3"
+    assert row["rejected_at"] == 3.0  # evaluations 2 (run 1's first move) and 4 (run 2's)
