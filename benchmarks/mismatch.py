@@ -31,7 +31,7 @@ from screen_physics import parse_variant  # the sibling script (benchmarks/ is o
 from pigp_torch.benchmark import METHODS, run_benchmark
 from pigp_torch.benchmark.mismatch import cases
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
-from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.benchmark.scoring import first_moves, run_scores
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
@@ -48,10 +48,15 @@ def cached_prior(cache: Path, key: str, build) -> PhysicsPrior:
     return prior
 
 
+def _by_method(first: pd.Series) -> dict[str, pd.Series]:
+    """``first_moves`` split by method (each: first-move evaluation per machine)."""
+    return {m: v.droplevel("method") for m, v in first.groupby(level="method")}
+
+
 def table(df: pd.DataFrame) -> pd.DataFrame:
     """Per case and method: medians (IQR) of the gains, reached 95 %, prior rejections."""
     scores = pd.concat([run_scores(g).assign(case=c) for c, g in df.groupby("case", sort=False)])
-    notes = df[df["notice"].fillna("") == "prior_rejected"]
+    moves = {c: _by_method(first_moves(g)) for c, g in df.groupby("case", sort=False)}
     rows = []
     for (case, method), g in scores.groupby(["case", "method"], sort=False):
         row = {"case": case, "method": method, "runs": len(g),
@@ -59,10 +64,9 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
         for k in (20, 40, 100):
             q = g[f"gain_{k}"].quantile([0.25, 0.5, 0.75])
             row[f"gain_{k}"] = f"{q.iloc[1]:.2f} ({q.iloc[0]:.2f}-{q.iloc[2]:.2f})"
-        rej = notes[(notes["case"] == case) & (notes["method"] == method)]
-        rej = rej.sort_values("step").drop_duplicates("machine_seed")  # first move of each run
+        rej = moves[case].get(method, pd.Series(dtype=float))
         row["rejected"] = f"{len(rej)}/{len(g)}"
-        row["rejected_at"] = float((rej["step"] + 1).median()) if len(rej) else float("nan")
+        row["rejected_at"] = float(rej.median()) if len(rej) else float("nan")
         rows.append(row)
     return pd.DataFrame(rows)
 

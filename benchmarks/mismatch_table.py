@@ -18,7 +18,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.benchmark.scoring import first_moves, run_scores
 
 BASELINES = ("ml2", "xopt-ucb")
 
@@ -58,11 +58,10 @@ def main(argv=None) -> int:
         g40, g100 = phys["gain_40"].median(), phys["gain_100"].median()
         rule100 = g100 >= max(v[1] for v in have) if have else None
         rule40 = all(g40 >= v[0] - 0.05 for v in have) if have else None
-        notes = raw[(raw["method"] == "pigp-physics") & (raw.get("notice", "") == "prior_rejected")]
-        notes = notes.sort_values("step").drop_duplicates("machine_seed")  # first move per run
-        moved = f"{len(notes)}/{len(phys)}"
-        if len(notes):
-            moved += f", {float((notes['step'] + 1).median()):.0f}"
+        first = first_moves(raw[raw["method"] == "pigp-physics"])  # one per run that moved
+        moved = f"{len(first)}/{len(phys)}"
+        if len(first):
+            moved += f", {float(first.median()):.0f}"
 
         def fmt(v):
             return "–" if v is None else f"{v[0]:.2f} / {v[1]:.2f}"

@@ -17,7 +17,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.benchmark.scoring import first_moves, run_scores
 
 
 def scores_of(df: pd.DataFrame) -> pd.DataFrame:
@@ -30,9 +30,7 @@ def scores_of(df: pd.DataFrame) -> pd.DataFrame:
         keys = pd.MultiIndex.from_frame(s[["method", "machine_seed"]])
         ask = g[g["step"] > 0].groupby(["method", "machine_seed"])["ask_time_s"].median()
         s["ask_ms_median"] = 1e3 * ask.reindex(keys).to_numpy()
-        moved = g[g["notice"].eq("prior_rejected")] if "notice" in g else g.iloc[:0]
-        first = moved.groupby(["method", "machine_seed"])["step"].min() + 1
-        s["prior_rejected_at"] = first.reindex(keys).to_numpy()
+        s["prior_rejected_at"] = first_moves(g).reindex(keys).to_numpy()
         out.append(s)
     cols = ["case", "method", "machine_seed", "budget", "steps_to_95", "reached_95",
             "steps_within", "gain_20", "gain_40", "gain_100", "ask_ms_median",

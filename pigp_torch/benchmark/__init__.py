@@ -18,7 +18,7 @@ from pigp_torch.benchmark.protocol import (
     run_seed,
     score_run,
 )
-from pigp_torch.benchmark.scoring import run_scores, summarize
+from pigp_torch.benchmark.scoring import first_moves, run_scores, summarize
 
 __all__ = [
     "BO_DEFAULTS",
@@ -27,6 +27,7 @@ __all__ = [
     "NOISE",
     "MethodSpec",
     "RunContext",
+    "first_moves",
     "machine_archive",
     "machine_optimum",
     "model_prior",

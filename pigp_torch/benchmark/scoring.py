@@ -13,6 +13,8 @@ is evaluation 1).
   shorter).
 * Compute per ask: ``ask_time_s`` of the evaluations after the start point, median and 90th
   percentile per method (s).
+* First move of the prior check: the evaluation :math:`n` of a run's first ``prior_rejected``
+  notice (a run may move more than once; it counts once, at its first move).
 """
 
 from __future__ import annotations
@@ -81,6 +83,24 @@ def run_scores(
         row["best_f_true"] = float(run["f_true"].max())
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def first_moves(df: pd.DataFrame) -> pd.Series:
+    """Evaluation number of each run's first ``prior_rejected`` notice.
+
+    Args:
+        df: evaluation rows (``method``, ``machine_seed``, ``step`` and, when any run wrote
+            notices, ``notice``).
+
+    Returns:
+        Series indexed by ``(method, machine_seed)``, only the runs that moved (``step + 1`` of
+        the first move, an evaluation count).
+    """
+    if "notice" not in df.columns:
+        return pd.Series([], dtype="int64", index=pd.MultiIndex.from_tuples(
+            [], names=["method", "machine_seed"]), name="step")  # fmt: skip
+    moved = df[df["notice"].fillna("").eq("prior_rejected")]
+    return moved.groupby(["method", "machine_seed"])["step"].min() + 1
 
 
 def summarize(

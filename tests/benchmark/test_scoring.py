@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pigp_torch.benchmark import run_scores, summarize
+from pigp_torch.benchmark import first_moves, run_scores, summarize
 
 
 def _run(method, seed, f_true, f0=0.5, f_star=1.5):
@@ -99,3 +99,18 @@ def test_summary_reports_the_compute_per_ask(table):
     assert out.loc["b", "ask_time_s_median"] == pytest.approx(0.15)
     assert out.loc["a", "ask_time_s_median"] == pytest.approx(0.25)
     assert out.loc["a", "ask_time_s_p90"] == pytest.approx(0.4)
+
+
+def test_first_moves_counts_each_run_once_at_its_first_notice():
+    """Two notices in one run count once, at the first (evaluation = step + 1); a run without
+    notices, or a table without a notice column, has no entry."""
+    a = _run("pigp-physics", 1, [0.5, 0.6, 0.7, 0.8, 0.9])
+    b = _run("pigp-physics", 2, [0.5, 0.6, 0.7, 0.8, 0.9])
+    c = _run("ml2", 1, [0.5, 0.6, 0.7])
+    a["notice"], b["notice"], c["notice"] = None, None, None
+    a.loc[a["step"] == 3, "notice"] = "prior_rejected"
+    a.loc[a["step"] == 1, "notice"] = "prior_rejected"
+    b.loc[b["step"] == 2, "notice"] = "safety_stop"
+    first = first_moves(pd.concat([a, b, c], ignore_index=True))
+    assert first.to_dict() == {("pigp-physics", 1): 2}
+    assert first_moves(c.drop(columns="notice")).empty
