@@ -20,6 +20,7 @@ import numpy as np
 from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS
+from pigp_torch.optimizers.physics_bo import relaxed_stages
 from pigp_torch.prior import PhysicsPrior
 
 PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
@@ -29,10 +30,7 @@ BEFORE = {
     "info_every": 0,
     "evidence_margin": 3.0,
     "evidence_from": None,
-    "relax": [
-        {"log_beta_std": 1.0, "f_inf_std": 0.1},
-        {"log_beta_std": 1.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
-    ],
+    "relax": list(relaxed_stages(log_beta_std=1.0)),
 }
 
 

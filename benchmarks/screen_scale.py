@@ -18,6 +18,7 @@ from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.benchmark.scoring import run_scores
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS
+from pigp_torch.optimizers.physics_bo import relaxed_stages
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
 
@@ -27,9 +28,8 @@ PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
 def wide_stages(log_beta_std: float = 3.0, scale_only_first: bool = False) -> list[dict]:
     """The default stages of the prior check with a wider ``log_beta_std`` (optionally first a
     stage that frees only the scale)."""
-    free = {"log_beta_std": log_beta_std, "f_inf_std": 0.1}
-    shape = {**free, "shape_std": 1.0, "center_cov_scale_factor": 4.0}
-    return ([{"log_beta_std": log_beta_std}] if scale_only_first else []) + [free, shape]
+    first = [{"log_beta_std": log_beta_std}] if scale_only_first else []
+    return first + list(relaxed_stages(log_beta_std=log_beta_std))
 
 
 #: name -> pigp-physics options (``{}``: the defaults).

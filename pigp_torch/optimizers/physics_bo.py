@@ -300,10 +300,13 @@ class PhysicsModelBO(AskTellOptimizer):
         n_evidence = n_misfit if self.evidence_from is None else self.evidence_from
         if self.stage == last or len(Y) < min(n_misfit, n_evidence):
             return
-        z, chi2, nu = self.misfit(X, Y)
-        self.misfit_z = z
+        # The misfit (and its reported z) only from p + 5 readings, where its test applies.
+        z = chi2 = nu = None
+        if len(Y) >= n_misfit:
+            z, chi2, nu = self.misfit(X, Y)
+            self.misfit_z = z
         target, reasons, fitted = None, [], set()
-        if len(Y) >= n_misfit and z > self.check_z:
+        if z is not None and z > self.check_z:
             target = last
             reasons.append(
                 f"the fitted physics form misses them by chi2/nu = {chi2 / nu:.2f} "
@@ -330,7 +333,9 @@ class PhysicsModelBO(AskTellOptimizer):
             model.fit(X, Y)
         self.model, self.stage = model, target
         self._alternatives = {k: v for k, v in self._alternatives.items() if k > target}
-        self.misfit_z, chi2_after, nu_after = self.misfit(X, Y)
+        z_after, chi2_after, nu_after = self.misfit(X, Y)
+        if len(Y) >= n_misfit:
+            self.misfit_z = z_after
         freed = ", ".join(f"{k} = {v:g}" for k, v in self.relax[target - 1].items())
         self.notify(
             "prior_rejected",
@@ -424,12 +429,19 @@ class PhysicsModelBO(AskTellOptimizer):
         return x
 
 
-#: The stages of :class:`PhysicsModelBO`'s prior check after the given model: model options
-#: over the given ones (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``).
-RELAXED_STAGES = (
-    {"log_beta_std": 3.0, "f_inf_std": 0.1},
-    {"log_beta_std": 3.0, "f_inf_std": 0.1, "shape_std": 1.0, "center_cov_scale_factor": 4.0},
-)
+def relaxed_stages(log_beta_std: float = 3.0, f_inf_std: float = 0.1) -> tuple[dict, dict]:
+    """The two stages of the prior check after the given model, as model options over the
+    given ones: first the shape's overall scale (``log_beta_std``, in log units) and the
+    background (``f_inf_std``, relative) free; then also the shape's eigen-scales
+    (``shape_std = 1``) and a centre prior 4x wider in variance
+    (``center_cov_scale_factor`` multiplies the given ``center_cov_scale``)."""
+    free = {"log_beta_std": float(log_beta_std), "f_inf_std": float(f_inf_std)}
+    return free, {**free, "shape_std": 1.0, "center_cov_scale_factor": 4.0}
+
+
+#: The stages of :class:`PhysicsModelBO`'s prior check after the given model (defaults of
+#: :func:`relaxed_stages`).
+RELAXED_STAGES = relaxed_stages()
 
 
 def _extend_theta(old: InverseSqrtPeakModel, new: InverseSqrtPeakModel) -> torch.Tensor:

@@ -153,7 +153,7 @@ def test_a_wrong_scale_moves_on_by_the_evidence():
 def test_evidence_from_starts_the_evidence_comparison_earlier():
     """With ``evidence_from=None`` the evidence comparison waits for p + 5 readings (as the
     misfit test); ``evidence_from=k`` starts it at k readings, while the misfit test still
-    waits; the default is 10."""
+    waits (and no misfit z is reported before it); the default is 10."""
     prior = _prior(_precision(0))
     broad = _machine(_prior(_precision(0) / 8.0), [0.004, -0.003, 0.002, -0.001, 0.003], c=0.8)
     first = {}
@@ -163,12 +163,16 @@ def test_evidence_from_starts_the_evidence_comparison_earlier():
         p = bo.model.n_params
         gen = torch.Generator().manual_seed(0)
         x = torch.zeros(D, dtype=DT)
-        seen = None
+        seen, early_z = None, []
         for _ in range(p + 6):
             bo.tell(x, broad(x) + prior.noise * float(torch.randn((), generator=gen, dtype=DT)))
             x = bo.ask()
             if seen is None and bo.log_evidence_ratio is not None:
                 seen = bo.n_told
+            if bo.n_told < p + 5:
+                early_z.append(bo.last_info["misfit_z"])
+        assert early_z and all(z is None for z in early_z)
+        assert bo.last_info["misfit_z"] is not None  # p + 6 readings: the misfit test runs
         first[start] = (seen, p)
     (late_seen, p), (early_seen, _) = first[None], first[4]
     assert late_seen == p + 5
