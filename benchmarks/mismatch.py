@@ -48,15 +48,9 @@ def cached_prior(cache: Path, key: str, build) -> PhysicsPrior:
     return prior
 
 
-def _by_method(first: pd.Series) -> dict[str, pd.Series]:
-    """``first_moves`` split by method (each: first-move evaluation per machine)."""
-    return {m: v.droplevel("method") for m, v in first.groupby(level="method")}
-
-
 def table(df: pd.DataFrame) -> pd.DataFrame:
     """Per case and method: medians (IQR) of the gains, reached 95 %, prior rejections."""
     scores = pd.concat([run_scores(g).assign(case=c) for c, g in df.groupby("case", sort=False)])
-    moves = {c: _by_method(first_moves(g)) for c, g in df.groupby("case", sort=False)}
     rows = []
     for (case, method), g in scores.groupby(["case", "method"], sort=False):
         row = {"case": case, "method": method, "runs": len(g),
@@ -64,7 +58,7 @@ def table(df: pd.DataFrame) -> pd.DataFrame:
         for k in (20, 40, 100):
             q = g[f"gain_{k}"].quantile([0.25, 0.5, 0.75])
             row[f"gain_{k}"] = f"{q.iloc[1]:.2f} ({q.iloc[0]:.2f}-{q.iloc[2]:.2f})"
-        rej = moves[case].get(method, pd.Series(dtype=float))
+        rej = first_moves(df[(df["case"] == case) & (df["method"] == method)])
         row["rejected"] = f"{len(rej)}/{len(g)}"
         row["rejected_at"] = float(rej.median()) if len(rej) else float("nan")
         rows.append(row)

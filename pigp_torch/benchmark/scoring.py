@@ -96,10 +96,8 @@ def first_moves(df: pd.DataFrame) -> pd.Series:
         Series indexed by ``(method, machine_seed)``, only the runs that moved (``step + 1`` of
         the first move, an evaluation count).
     """
-    if "notice" not in df.columns:
-        return pd.Series([], dtype="int64", index=pd.MultiIndex.from_tuples(
-            [], names=["method", "machine_seed"]), name="step")  # fmt: skip
-    moved = df[df["notice"].fillna("").eq("prior_rejected")]
+    notice = df["notice"].fillna("") if "notice" in df.columns else pd.Series("", index=df.index)
+    moved = df[notice.eq("prior_rejected")]
     return moved.groupby(["method", "machine_seed"])["step"].min() + 1
 
 
