@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 import torch
 from torch import Tensor
@@ -517,48 +518,92 @@ class InverseSqrtPeakModel:
         :math:`\nabla k_i = -k_i P(\mathbf x - \mathbf x_i)` to the mean (weights
         :math:`\alpha`) and :math:`-2\sum_i u_i \nabla k_i`, :math:`\mathbf u = K^{-1}\mathbf
         k`, to the variance; :math:`\nabla\sigma = \nabla\sigma^2 / (2\sigma)` (zero where the
-        variance sits at its floor)."""
-        theta = self._fitted()
+        variance sits at its floor).
+
+        Computed in NumPy from the fit's quantities (cached once per fit): the acquisition
+        search calls this hundreds of times an ask on ``k x d`` arrays of a few starts, where
+        each torch call costs more than its arithmetic. A test checks it against autograd of
+        :meth:`predict`."""
+        st = self._prediction_state()
+        B, c, beta, cov = st["B"], st["c"], st["beta"], st["cov"]
+        x = X.detach().numpy()
         d = self.dim
-        B = self.shape(theta)
-        D = X - theta[:d]
+        D = x - st["mu"]
         BD = D @ B
         q = (BD * D).sum(-1)
-        c, beta = torch.exp(theta[d]), torch.exp(theta[d + 1])
         g = c + beta * q
         g15 = g**-1.5
-        mu = self.background(theta) + torch.rsqrt(g)
-        dmu = -(beta * g15).unsqueeze(-1) * BD
-        J = self.jacobian(X, theta)
-        W = J @ self.cov  # n x p
-        var = (W * J).sum(-1)
-        # phys: the entries j_k = dfdg * dg_k (all but the background's j = 1)
+        mu = st["background"] + g**-0.5
+        dmu = -(beta * g15)[..., None] * BD
+        # the rows of jacobian(): dfdg * dg/dtheta, then 1 for the background, then the shape
         dfdg = -0.5 * g15
         dg_mu = -2.0 * beta * BD
-        wdg = (W[..., :d] * dg_mu).sum(-1) + W[..., d] * c + W[..., d + 1] * beta * q
-        grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
-        inner = -2.0 * beta * (W[..., :d] @ B) + (2.0 * beta * W[..., d + 1]).unsqueeze(-1) * BD
+        cols = [dg_mu, np.broadcast_to(c, q.shape)[..., None], (beta * q)[..., None]]
+        J = np.concatenate(cols, -1) * dfdg[..., None]
+        if self.f_inf_std > 0:
+            J = np.concatenate([J, np.ones_like(q)[..., None]], -1)
         if self.shape_std > 0:
-            s = theta[self._s_index : self._s_index + d]
-            lam = self._lam * torch.exp(s)
-            Ws = W[..., self._s_index : self._s_index + d]
-            wdg = wdg + (Ws * beta * (D @ self._V) ** 2 * lam).sum(-1)
-            grad_v = (wdg * 1.5 * beta * g**-2.5).unsqueeze(-1) * BD
-            inner = inner + 2.0 * beta * ((Ws * lam * (D @ self._V)) @ self._V.T)
-        dvar = 2.0 * (grad_v + dfdg.unsqueeze(-1) * inner)
+            DV = D @ st["V"]
+            J = np.concatenate([J, (beta * DV**2 * st["lam"]) * dfdg[..., None]], -1)
+        W = J @ cov  # n x p
+        var = (W * J).sum(-1)
+        wdg = (W[..., :d] * dg_mu).sum(-1) + W[..., d] * c + W[..., d + 1] * beta * q
+        inner = -2.0 * beta * (W[..., :d] @ B) + (2.0 * beta * W[..., d + 1])[..., None] * BD
+        if self.shape_std > 0:
+            i = self._s_index
+            Ws = W[..., i : i + d]
+            wdg = wdg + (Ws * beta * DV**2 * st["lam"]).sum(-1)
+            inner = inner + 2.0 * beta * ((Ws * st["lam"] * DV) @ st["V"].T)
+        grad_v = (wdg * 1.5 * beta * g**-2.5)[..., None] * BD
+        dvar = 2.0 * (grad_v + dfdg[..., None] * inner)
         if self.residual_std > 0:
-            Ks = self._k_res(X, self._X)  # n x m
-            Dr = X.unsqueeze(-2) - self._X  # n x m x d
-            PDr = Dr @ self._res_prec
-            mu = mu + Ks @ self._alpha
-            dmu = dmu - ((Ks * self._alpha).unsqueeze(-1) * PDr).sum(-2)
-            U = torch.cholesky_solve(Ks.transpose(-1, -2), self._L).transpose(-1, -2)
+            Dr = x[..., None, :] - st["Xr"]  # n x m x d
+            PDr = Dr @ st["P"]
+            Ks = self.residual_std**2 * np.exp(-0.5 * (PDr * Dr).sum(-1))  # n x m
+            mu = mu + Ks @ st["alpha"]
+            dmu = dmu - ((Ks * st["alpha"])[..., None] * PDr).sum(-2)
+            Lr = st["L"]  # K = L L^T: U = K^-1 k by two triangular solves
+            U = np.swapaxes(_cho_solve(Lr, np.swapaxes(Ks, -1, -2)), -1, -2)
             var = var + self.residual_std**2 - (Ks * U).sum(-1)
-            dvar = dvar + 2.0 * ((U * Ks).unsqueeze(-1) * PDr).sum(-2)
+            dvar = dvar + 2.0 * ((U * Ks)[..., None] * PDr).sum(-2)
         floor = var <= 1e-18
-        sd = var.clamp_min(1e-18).sqrt()
-        dsd = torch.where(floor.unsqueeze(-1), 0.0, dvar / (2 * sd).unsqueeze(-1))
-        return mu, sd, dmu, dsd
+        sd = np.sqrt(np.maximum(var, 1e-18))
+        dsd = np.where(floor[..., None], 0.0, dvar / (2 * sd)[..., None])
+        return tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in (mu, sd, dmu, dsd))
+
+    def _prediction_state(self) -> dict:
+        """The fitted quantities of :meth:`predict_with_grad` as NumPy arrays, computed once per
+        fit (the cache is keyed on the very tensors of the fit, which a new fit replaces)."""
+        theta = self._fitted()
+        key = (theta, self.cov, getattr(self, "_L", None), getattr(self, "_X", None))
+        cached = getattr(self, "_np_state", None)
+        if cached is not None and all(a is b for a, b in zip(cached["key"], key)):
+            return cached
+        d = self.dim
+        st = {
+            "key": key,
+            "mu": theta[:d].numpy(),
+            "B": self.shape(theta).numpy(),
+            "c": float(torch.exp(theta[d])),
+            "beta": float(torch.exp(theta[d + 1])),
+            "background": float(self.background(theta)),
+            "cov": self.cov.numpy(),
+        }
+        if self.shape_std > 0:
+            st["V"] = self._V.numpy()
+            st["lam"] = (self._lam * torch.exp(theta[self._s_index : self._s_index + d])).numpy()
+        if self.residual_std > 0:
+            st["Xr"], st["P"] = self._X.numpy(), self._res_prec.numpy()
+            st["alpha"], st["L"] = self._alpha.numpy(), self._L.numpy()
+        self._np_state = st
+        return st
+
+
+def _cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:math:`(L L^\top)^{-1} b` for a lower Cholesky factor ``L`` (``m x m``) and ``m x k``
+    ``b``."""
+    y = scipy.linalg.solve_triangular(L, b, lower=True, check_finite=False)
+    return scipy.linalg.solve_triangular(L.T, y, lower=False, check_finite=False)
 
 
 class _NumpyObjective:

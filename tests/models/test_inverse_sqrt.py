@@ -502,7 +502,8 @@ def test_closed_form_gradient_of_the_posterior_equals_autograd(prior, options, e
 )
 def test_closed_form_gradient_of_the_prediction_equals_autograd(prior, options):
     """``predict_with_grad``: the mean and sd of ``predict`` and their gradients in the setting
-    equal autograd's (1e-10), with and without the residual GP, background and shape fits."""
+    equal autograd's (1e-10), with and without the residual GP, background and shape fits, and
+    follow a refit."""
     model = InverseSqrtPeakModel(prior, prior.bounds, **options)
     g = torch.Generator().manual_seed(5)
     X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
@@ -517,3 +518,10 @@ def test_closed_form_gradient_of_the_prediction_equals_autograd(prior, options):
     torch.testing.assert_close(sd, sd_ref.detach(), rtol=1e-12, atol=0)
     for got, ref in ((dmu, dmu_ref), (dsd, dsd_ref)):
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-10 * float(ref.abs().max()))
+    # a new fit replaces the cached arrays of the prediction (no stale state)
+    model.fit(X[:12], Y[:12] + 0.05)
+    mu2, sd2, _, _ = model.predict_with_grad(Z.detach())
+    mu2_ref, sd2_ref = model.predict(Z.detach())
+    assert float((mu2 - mu).abs().max()) > 1e-3
+    torch.testing.assert_close(mu2, mu2_ref, rtol=1e-12, atol=0)
+    torch.testing.assert_close(sd2, sd2_ref, rtol=1e-12, atol=0)
