@@ -577,7 +577,7 @@ class InverseSqrtPeakModel:
         theta = self._fitted()
         key = (theta, self.cov, getattr(self, "_L", None), getattr(self, "_X", None))
         cached = getattr(self, "_np_state", None)
-        if cached is not None and all(a is b for a, b in zip(cached["key"], key)):
+        if cached is not None and all(a is b for a, b in zip(cached["key"], key, strict=True)):
             return cached
         d = self.dim
         st = {
