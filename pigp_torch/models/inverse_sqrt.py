@@ -525,37 +525,15 @@ class InverseSqrtPeakModel:
         each torch call costs more than its arithmetic. A test checks it against autograd of
         :meth:`predict`."""
         st = self._prediction_state()
-        B, c, beta, cov = st["B"], st["c"], st["beta"], st["cov"]
         x = X.detach().numpy()
-        d = self.dim
-        D = x - st["mu"]
-        BD = D @ B
-        q = (BD * D).sum(-1)
-        g = c + beta * q
-        g15 = g**-1.5
-        mu = st["background"] + g**-0.5
-        dmu = -(beta * g15)[..., None] * BD
-        # the rows of jacobian(): dfdg * dg/dtheta, then 1 for the background, then the shape
-        dfdg = -0.5 * g15
-        dg_mu = -2.0 * beta * BD
-        cols = [dg_mu, np.broadcast_to(c, q.shape)[..., None], (beta * q)[..., None]]
-        J = np.concatenate(cols, -1) * dfdg[..., None]
-        if self.f_inf_std > 0:
-            J = np.concatenate([J, np.ones_like(q)[..., None]], -1)
-        if self.shape_std > 0:
-            DV = D @ st["V"]
-            J = np.concatenate([J, (beta * DV**2 * st["lam"]) * dfdg[..., None]], -1)
-        W = J @ cov  # n x p
+        pt = self._form_terms(st, x)
+        beta, BD = st["beta"], pt["BD"]
+        mu = st["background"] + pt["g"] ** -0.5
+        dmu = (2.0 * pt["dfdg"])[..., None] * beta * BD
+        J = pt["J"]
+        W = J @ st["cov"]  # n x p
         var = (W * J).sum(-1)
-        wdg = (W[..., :d] * dg_mu).sum(-1) + W[..., d] * c + W[..., d + 1] * beta * q
-        inner = -2.0 * beta * (W[..., :d] @ B) + (2.0 * beta * W[..., d + 1])[..., None] * BD
-        if self.shape_std > 0:
-            i = self._s_index
-            Ws = W[..., i : i + d]
-            wdg = wdg + (Ws * beta * DV**2 * st["lam"]).sum(-1)
-            inner = inner + 2.0 * beta * ((Ws * st["lam"] * DV) @ st["V"].T)
-        grad_v = (wdg * 1.5 * beta * g**-2.5)[..., None] * BD
-        dvar = 2.0 * (grad_v + dfdg[..., None] * inner)
+        dvar = 2.0 * self._contract_grad_j(st, pt, W)
         if self.residual_std > 0:
             Dr = x[..., None, :] - st["Xr"]  # n x m x d
             PDr = Dr @ st["P"]
@@ -597,6 +575,73 @@ class InverseSqrtPeakModel:
             st["alpha"], st["L"] = self._alpha.numpy(), self._L.numpy()
         self._np_state = st
         return st
+
+    def _form_terms(self, st: dict, x: np.ndarray) -> dict:
+        r"""The form's pieces at ``n x d`` settings ``x`` (NumPy, fitted :math:`\theta` from
+        ``st``): :math:`\mathbf D`, :math:`B\mathbf D`, :math:`q`, :math:`g`,
+        :math:`\partial f/\partial g = -\tfrac12 g^{-3/2}`, :math:`\mathbf D^\top V` (shape
+        fitted) and the ``n x p`` rows :math:`J` of :meth:`jacobian`."""
+        c, beta = st["c"], st["beta"]
+        D = x - st["mu"]
+        BD = D @ st["B"]
+        q = (BD * D).sum(-1)
+        g = c + beta * q
+        dfdg = -0.5 * g**-1.5
+        cols = [-2.0 * beta * BD, np.broadcast_to(c, q.shape)[..., None], (beta * q)[..., None]]
+        J = np.concatenate(cols, -1) * dfdg[..., None]
+        if self.f_inf_std > 0:
+            J = np.concatenate([J, np.ones_like(q)[..., None]], -1)
+        DV = None
+        if self.shape_std > 0:
+            DV = D @ st["V"]
+            J = np.concatenate([J, (beta * DV**2 * st["lam"]) * dfdg[..., None]], -1)
+        return {"D": D, "BD": BD, "q": q, "g": g, "dfdg": dfdg, "DV": DV, "J": J}
+
+    def _contract_grad_j(self, st: dict, pt: dict, A: np.ndarray) -> np.ndarray:
+        r""":math:`\sum_k a_k \nabla_{\mathbf x} j_k` for ``n x p`` weights ``A`` (one row per
+        setting), ``n x d``: with :math:`j_k = \tfrac{\partial f}{\partial g}
+        \tfrac{\partial g}{\partial\theta_k}`, :math:`\nabla (\partial f/\partial g) =
+        \tfrac32\beta g^{-5/2} B\mathbf D` and the gradients of :math:`\partial
+        g/\partial\theta_k` (:math:`-2\beta B` for the centre, :math:`2\beta B\mathbf D` for
+        :math:`\log\beta`, :math:`2\beta\lambda_k e^{s_k}(\mathbf v_k^\top\mathbf D)\mathbf
+        v_k` for a shape log-scale; none for :math:`\log c` and the background)."""
+        d, c, beta = self.dim, st["c"], st["beta"]
+        BD, q, g, DV = pt["BD"], pt["q"], pt["g"], pt["DV"]
+        # sum_k a_k dg/dtheta_k, then the same with each dg/dtheta_k differentiated in x
+        adg = -2.0 * beta * (A[..., :d] * BD).sum(-1) + A[..., d] * c + A[..., d + 1] * beta * q
+        inner = -2.0 * beta * (A[..., :d] @ st["B"]) + (2.0 * beta * A[..., d + 1])[..., None] * BD
+        if self.shape_std > 0:
+            i = self._s_index
+            As = A[..., i : i + d]
+            adg = adg + (As * beta * DV**2 * st["lam"]).sum(-1)
+            inner = inner + 2.0 * beta * ((As * st["lam"] * DV) @ st["V"].T)
+        return (adg * 1.5 * beta * g**-2.5)[..., None] * BD + pt["dfdg"][..., None] * inner
+
+    def centre_information_with_grad(self, X: Tensor) -> tuple[Tensor, Tensor]:
+        r"""How much one more reading at each of ``n x d`` settings shrinks
+        :math:`\mathrm{tr}(B\,C_\mu)`, :math:`C_\mu` the Laplace covariance of the fitted
+        centre, and its ``n x d`` gradient in closed form.
+
+        With :math:`\mathbf j` the row of :meth:`jacobian`, :math:`\mathbf v = C\mathbf j`,
+        :math:`N = \mathbf v_\mu^\top B\,\mathbf v_\mu` and :math:`S = \sigma_n^2 +
+        \mathbf j^\top C\mathbf j` (Sherman-Morrison), the reduction is :math:`I = N / S` and
+
+        .. math:: \nabla I = \sum_k \bigl(2\,(C_{\cdot\mu} B\,\mathbf v_\mu)_k
+                  - 2 I\, v_k\bigr)\,\nabla j_k \,/\, S
+
+        (:meth:`_contract_grad_j`). Units: knob units squared (of the trace), per knob unit
+        for the gradient."""
+        st = self._prediction_state()
+        x = X.detach().numpy()
+        pt = self._form_terms(st, x)
+        J, cov, d = pt["J"], st["cov"], self.dim
+        V = J @ cov
+        BVmu = V[..., :d] @ st["B"]
+        S = self.noise**2 + (V * J).sum(-1)
+        info = (BVmu * V[..., :d]).sum(-1) / S
+        A = 2.0 * (BVmu @ cov[:d, :]) - 2.0 * info[..., None] * V
+        grad = self._contract_grad_j(st, pt, A) / S[..., None]
+        return torch.from_numpy(info), torch.from_numpy(np.ascontiguousarray(grad))
 
 
 def _cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:

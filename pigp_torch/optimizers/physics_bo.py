@@ -372,7 +372,9 @@ class PhysicsModelBO(AskTellOptimizer):
         :math:`\sigma_n` updates :math:`C \to C - \mathbf v\mathbf v^\top / (\sigma_n^2 +
         \mathbf j^\top C \mathbf j)` (Sherman-Morrison), so the trace falls by
         :math:`\mathbf v_\mu^\top B\, \mathbf v_\mu / (\sigma_n^2 + \mathbf j^\top C
-        \mathbf j)`."""
+        \mathbf j)`. Differentiable (torch); the ask maximizes the same quantity with its
+        closed-form gradient,
+        :meth:`~pigp_torch.models.InverseSqrtPeakModel.centre_information_with_grad`."""
         model = self.model
         J = model.jacobian(X)
         V = J @ model.cov
@@ -401,13 +403,15 @@ class PhysicsModelBO(AskTellOptimizer):
         inform = not exploit and self.info_every > 0 and self.n_told % self.info_every == 0
         beta = 0.0 if exploit else self.beta
         x, value = find_optimum(
-            self.centre_information if inform else (lambda Z: self.acquisition_with_grad(Z, beta)),
+            self.model.centre_information_with_grad
+            if inform
+            else (lambda Z: self.acquisition_with_grad(Z, beta)),
             box,
             n_starts=self.n_starts,
             seed=self.seed + self.n_told,
             x_init=torch.stack([center, torch.minimum(torch.maximum(fitted, box[0]), box[1])]),
             maxiter=200,
-            with_grad=not inform,
+            with_grad=True,
         )
         x = torch.minimum(torch.maximum(x, box[0]), box[1])  # guard against round-off
         self.last_info = {

@@ -243,6 +243,29 @@ def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prio
         PhysicsModelBO(prior.bounds, prior, info_every=-1)
 
 
+@pytest.mark.parametrize(
+    "options", [{}, {"f_inf_std": 0.05}, {"shape_std": 0.5, "f_inf_std": 0.05}]
+)
+def test_closed_form_centre_information_and_its_gradient_equal_autograd(prior, options):
+    """``centre_information_with_grad`` (NumPy, the ask's) equals the torch
+    ``PhysicsModelBO.centre_information`` (1e-12) and its gradient autograd's (1e-9), with the
+    background and shape fitted or not."""
+    from types import SimpleNamespace
+
+    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
+    g = torch.Generator().manual_seed(7)
+    X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
+    Y = F_INF + 0.3 + 0.1 * torch.rand(20, generator=g, dtype=DT)
+    model.fit(X, Y)
+    Z = ((torch.rand(6, D, generator=g, dtype=DT) * 2 - 1) * 0.02).requires_grad_(True)
+    ref = PhysicsModelBO.centre_information(SimpleNamespace(model=model), Z)
+    (dref,) = torch.autograd.grad(ref.sum(), Z)
+    info, grad = model.centre_information_with_grad(Z.detach())
+    assert float(ref.detach().abs().min()) > 0
+    torch.testing.assert_close(info, ref.detach(), rtol=1e-12, atol=0)
+    torch.testing.assert_close(grad, dref, rtol=1e-9, atol=1e-9 * float(dref.abs().max()))
+
+
 def test_box_optimum_is_the_b_metric_projection_and_regret_metric_its_jacobian(prior):
     """Inside the box: x_hat = mu, no knob active, M = B. Outside: x_hat equals an independent
     bounded L-BFGS-B minimum of (x - mu)'B(x - mu); the active knobs are those on a bound; and
