@@ -243,6 +243,18 @@ def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prio
         PhysicsModelBO(prior.bounds, prior, info_every=-1)
 
 
+def fitted_model_and_settings(prior, options, seed):
+    """A model with ``options`` fitted to 20 random readings near the centre, those readings
+    and 6 settings (``requires_grad``) at which to compare closed forms with autograd."""
+    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
+    g = torch.Generator().manual_seed(seed)
+    X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
+    Y = F_INF + 0.3 + 0.1 * torch.rand(20, generator=g, dtype=DT)
+    model.fit(X, Y)
+    Z = ((torch.rand(6, D, generator=g, dtype=DT) * 2 - 1) * 0.02).requires_grad_(True)
+    return model, X, Y, Z
+
+
 @pytest.mark.parametrize(
     "options", [{}, {"f_inf_std": 0.05}, {"shape_std": 0.5, "f_inf_std": 0.05}]
 )
@@ -252,12 +264,7 @@ def test_closed_form_centre_information_and_its_gradient_equal_autograd(prior, o
     background and shape fitted or not."""
     from types import SimpleNamespace
 
-    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
-    g = torch.Generator().manual_seed(7)
-    X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
-    Y = F_INF + 0.3 + 0.1 * torch.rand(20, generator=g, dtype=DT)
-    model.fit(X, Y)
-    Z = ((torch.rand(6, D, generator=g, dtype=DT) * 2 - 1) * 0.02).requires_grad_(True)
+    model, _, _, Z = fitted_model_and_settings(prior, options, seed=7)
     ref = PhysicsModelBO.centre_information(SimpleNamespace(model=model), Z)
     (dref,) = torch.autograd.grad(ref.sum(), Z)
     info, grad = model.centre_information_with_grad(Z.detach())
@@ -527,12 +534,7 @@ def test_closed_form_gradient_of_the_prediction_equals_autograd(prior, options):
     """``predict_with_grad``: the mean and sd of ``predict`` and their gradients in the setting
     equal autograd's (1e-10), with and without the residual GP, background and shape fits, and
     follow a refit."""
-    model = InverseSqrtPeakModel(prior, prior.bounds, **options)
-    g = torch.Generator().manual_seed(5)
-    X = (torch.rand(20, D, generator=g, dtype=DT) * 2 - 1) * 0.015
-    Y = F_INF + 0.3 + 0.1 * torch.rand(20, generator=g, dtype=DT)
-    model.fit(X, Y)
-    Z = ((torch.rand(6, D, generator=g, dtype=DT) * 2 - 1) * 0.02).requires_grad_(True)
+    model, X, Y, Z = fitted_model_and_settings(prior, options, seed=5)
     mu_ref, sd_ref = model.predict(Z)
     (dmu_ref,) = torch.autograd.grad(mu_ref.sum(), Z, retain_graph=True)
     (dsd_ref,) = torch.autograd.grad(sd_ref.sum(), Z)
