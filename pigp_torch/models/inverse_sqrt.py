@@ -57,6 +57,7 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
+from pigp_torch._lbfgsb import minimize_lbfgsb
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch.prior import PhysicsPrior
 
@@ -358,7 +359,11 @@ class InverseSqrtPeakModel:
         w = e**3
         A = torch.cat([torch.ones(n, 1, dtype=DTYPE), X], 1) * w[:, None]
         rhs = (e**-2 - ((X @ self.B) * X).sum(-1)) * w
-        sol = torch.linalg.lstsq(A, rhs[:, None]).solution.squeeze(1)
+        # NumPy's LAPACK (gelsd), not torch.linalg.lstsq: torch's CPU solver (MKL gelsy) gives
+        # results that differ in the last bits from call to call on the same input (it depends
+        # on where the arrays sit in memory), and this start decides between fits, so runs
+        # would not repeat.
+        sol = torch.from_numpy(np.linalg.lstsq(A.numpy(), rhs.numpy(), rcond=None)[0])
         mu = torch.linalg.solve(self.B, -sol[1:] / 2)
         c = float(sol[0] - mu @ self.B @ mu)
         if not (math.isfinite(c) and torch.isfinite(mu).all()):
@@ -407,12 +412,8 @@ class InverseSqrtPeakModel:
 
         best = None
         for t0 in starts:
-            res = scipy.optimize.minimize(
-                value_and_grad,
-                t0.detach().numpy() / scale_np,
-                jac=True,
-                method="L-BFGS-B",
-                options={"maxiter": self.max_iter},
+            res = minimize_lbfgsb(
+                value_and_grad, t0.detach().numpy() / scale_np, maxiter=self.max_iter
             )
             if best is None or res.fun < best[1]:
                 best = (torch.from_numpy(res.x * scale_np).to(DTYPE), float(res.fun))
