@@ -11,10 +11,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-import scipy.optimize
 import torch
 from torch import Tensor
 
+from pigp_torch._lbfgsb import minimize_lbfgsb
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 
 
@@ -138,13 +138,14 @@ def maximize_from(
         penalty = 1e6 * float((~ok).sum())
         return -float(total.detach()) + penalty, -g.detach().numpy().reshape(-1)
 
-    res = scipy.optimize.minimize(
+    res = minimize_lbfgsb(
         neg_total,
         Z0.numpy().reshape(-1),
-        jac=True,
-        method="L-BFGS-B",
         bounds=[(0.0, 1.0)] * (k * d),
-        options={"maxiter": maxiter, "maxfun": 2 * maxiter, "ftol": 1e-15, "gtol": 1e-11},
+        maxiter=maxiter,
+        maxfun=2 * maxiter,
+        ftol=1e-15,
+        gtol=1e-11,
     )
     Z = torch.from_numpy(res.x.reshape(k, d)).to(DTYPE)
     with torch.no_grad():

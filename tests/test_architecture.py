@@ -21,7 +21,7 @@ layer  units
 3      ``models`` (GP builders)
 2      ``kernels``, ``prior``, ``surrogate``, ``simulation``, ``runlog``
 1      ``_multistart``, ``config`` (run-file schema), ``dataset``, ``progress``, ``runlock``
-0      ``_utils``, ``_version``
+0      ``_utils``, ``_version``, ``_lbfgsb`` (scipy's L-BFGS-B, driven directly)
 =====  =========================================================================================
 """
 
@@ -47,7 +47,7 @@ LAYERS: dict[str, int] = {
     "models": 3,
     **dict.fromkeys(("kernels", "prior", "surrogate", "simulation", "runlog"), 2),
     **dict.fromkeys(("_multistart", "config", "dataset", "progress", "runlock"), 1),
-    **dict.fromkeys(("_utils", "_version"), 0),
+    **dict.fromkeys(("_utils", "_version", "_lbfgsb"), 0),
 }
 
 

@@ -35,11 +35,11 @@ from collections.abc import Callable
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 import scipy.special
 import torch
 from gpytorch import settings as gpytorch_settings
 
+from pigp_torch._lbfgsb import minimize_lbfgsb
 from pigp_torch._utils import DTYPE, as_knob_tensor
 from pigp_torch.kernels._base import precision_cholesky
 from pigp_torch.optimizers.base import (
@@ -503,14 +503,7 @@ def _maximize_lbfgsb(fun, U0: np.ndarray, options: dict):
         count["n"] += 1
         return -float(value.sum()), -g.reshape(-1)
 
-    res = scipy.optimize.minimize(
-        neg_total,
-        U0.reshape(-1),
-        jac=True,
-        method="L-BFGS-B",
-        bounds=[(0.0, 1.0)] * (k * d),
-        options=options,
-    )
+    res = minimize_lbfgsb(neg_total, U0.reshape(-1), bounds=[(0.0, 1.0)] * (k * d), **options)
     U = np.clip(res.x.reshape(k, d), 0.0, 1.0)
     return U, fun(U, 0), {"iterations": int(res.nit), "evaluations": count["n"] + 1}
 
