@@ -402,21 +402,23 @@ class InverseSqrtPeakModel:
             scale[: self.dim] = self.tau
         scale_np = scale.numpy()
 
-        objective = _NumpyObjective(self, X, Y)
+        evaluate = _NumpyObjective(self, X, Y)._evaluate
+        unit = self.shape_std == 0  # scale 1: the products below would not change a bit
 
         def value_and_grad(z: np.ndarray) -> tuple[float, np.ndarray]:
-            v, grad = objective(z * scale_np)
-            if not (np.isfinite(v) and np.isfinite(grad).all()):
+            v, grad = evaluate(z if unit else z * scale_np)
+            if not (math.isfinite(v) and np.isfinite(grad).all()):
                 return 1e30, np.zeros_like(z)
-            return v, grad * scale_np
+            return v, grad if unit else grad * scale_np
 
         best = None
-        for t0 in starts:
-            res = minimize_lbfgsb(
-                value_and_grad, t0.detach().numpy() / scale_np, maxiter=self.max_iter
-            )
-            if best is None or res.fun < best[1]:
-                best = (torch.from_numpy(res.x * scale_np).to(DTYPE), float(res.fun))
+        with np.errstate(all="ignore"):  # an overflow gives inf/nan, which is rejected above
+            for t0 in starts:
+                res = minimize_lbfgsb(
+                    value_and_grad, t0.detach().numpy() / scale_np, maxiter=self.max_iter
+                )
+                if best is None or res.fun < best[1]:
+                    best = (torch.from_numpy(res.x * scale_np).to(DTYPE), float(res.fun))
         self.theta = best[0]
         self._laplace(X)
         self._residual_gp(X, Y)
