@@ -6,6 +6,11 @@ the defaults and with :data:`BEFORE` (the defaults before the information asks a
 evidence check), alternating the two machine by machine so that both see the same load, and
 prints per variant the median and 90th percentile of the compute per ask in ms, and the ratio of
 the medians. Shared machines are noisy: read the ratio, not the absolute numbers.
+
+``python benchmarks/ask_time.py --seeds 101-102 --budget 100 --driver`` compares instead the two
+L-BFGS-B paths with the defaults: scipy's compiled routine driven directly
+(:func:`pigp_torch._lbfgsb.minimize_lbfgsb`) against :func:`scipy.optimize.minimize`, and
+checks that the two runs of each machine chose the same settings to the bit.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
+import pigp_torch._lbfgsb as lbfgsb
 from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS
@@ -38,25 +44,39 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", default="1-4", help="machine seeds, e.g. 1-4")
     p.add_argument("--budget", type=int, default=60, help="evaluations per run")
+    p.add_argument(
+        "--driver", action="store_true", help="direct L-BFGS-B driver against scipy's minimize"
+    )
     args = p.parse_args(argv)
     prior = PhysicsPrior.load(PRIOR)
-    variants = {"defaults": {}, "before": BEFORE}
+    if args.driver:
+        variants = {"direct": ({}, True), "scipy": ({}, False)}
+    else:
+        variants = {"defaults": ({}, True), "before": (BEFORE, True)}
     times: dict[str, list[float]] = {name: [] for name in variants}
     for seed in seed_list(args.seeds):
-        for name, options in variants.items():
+        settings = []
+        for name, (options, direct) in variants.items():
             spec = METHODS["pigp-physics"].with_options(**options)
+            lbfgsb._DIRECT_OK = direct and lbfgsb._self_check()
             run = run_one(spec, seed, prior, budget=args.budget, optimum_starts=0)
+            settings.append(run[list(prior.knob_names)].to_numpy())
             asks = run.loc[run["step"] > 0, "ask_time_s"].to_numpy()
             times[name].extend(asks.tolist())
             print(f"machine {seed} {name}: median {1e3 * np.median(asks):.0f} ms per ask",
                   flush=True)  # fmt: skip
+        if args.driver:
+            same = np.array_equal(*settings)
+            print(f"machine {seed}: the two runs chose the same settings to the bit: {same}")
+    lbfgsb._DIRECT_OK = None
     medians = {}
     for name, values in times.items():
         v = 1e3 * np.asarray(values)
         medians[name] = float(np.median(v))
         print(f"{name}: median {medians[name]:.0f} ms, p90 {np.percentile(v, 90):.0f} ms per ask "
               f"({len(v)} asks)")  # fmt: skip
-    print(f"ratio defaults / before: {medians['defaults'] / medians['before']:.2f}")
+    first, second = variants
+    print(f"ratio {first} / {second}: {medians[first] / medians[second]:.2f}")
     return 0
 
 

@@ -181,3 +181,19 @@ def test_evidence_from_starts_the_evidence_comparison_earlier():
     assert PhysicsModelBO(prior.bounds, prior).evidence_from == 10
     with pytest.raises(ValueError, match="evidence_from"):
         PhysicsModelBO(prior.bounds, prior, evidence_from=1)
+
+
+def test_a_run_repeats_to_the_bit():
+    """Two runs on the same readings choose the same settings to the last bit, through the
+    evidence comparison and the relaxed stages, although the second allocates its arrays
+    elsewhere (a solver whose rounding depends on memory placement would make them part)."""
+    prior = _prior(_precision(0))
+    f = _machine(_prior(_precision(7)), MU, c=0.3)
+    padding, runs = [], []
+    for repeat in range(2):
+        padding.append(torch.empty(1 + 17 * repeat, dtype=DT))
+        bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+        _run(bo, f, 30, prior.noise)
+        assert bo.relaxed  # the run went through a second model
+        runs.append(torch.stack(bo.X).numpy())
+    assert np.array_equal(runs[0], runs[1])
