@@ -35,6 +35,7 @@ def wide_stages(log_beta_std: float = 3.0, scale_only_first: bool = False) -> li
 #: name -> pigp-physics options (``{}``: the defaults).
 VARIANTS = {
     "D": {},
+    "B5": {"log_beta_std": 0.5},
     "W": {"log_beta_std": 1.0, "f_inf_std": 0.1, "relax": wide_stages()},
     "R": {"evidence_margin": 1.5, "relax": wide_stages()},
     "R3": {"evidence_margin": 1.0, "relax": wide_stages()},
