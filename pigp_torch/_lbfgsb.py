@@ -62,10 +62,7 @@ def minimize_lbfgsb(
         _DIRECT_OK = _self_check()
     options = dict(maxiter=maxiter, maxfun=maxfun, ftol=ftol, gtol=gtol, maxcor=maxcor, maxls=maxls)
     if _DIRECT_OK:
-        try:
-            return _direct(fun_and_grad, x0, bounds, **options)
-        except TypeError:  # the routine's signature changed under a running process
-            _DIRECT_OK = False
+        return _direct(fun_and_grad, x0, bounds, **options)
     return scipy.optimize.minimize(
         fun_and_grad, x0, jac=True, method="L-BFGS-B", bounds=bounds, options=options
     )
@@ -79,7 +76,7 @@ def _direct(fun_and_grad, x0, bounds, maxiter, maxfun, ftol, gtol, maxcor, maxls
     a repeat of the last point, which it serves from its memo (so does this loop)."""
     from scipy.optimize import _lbfgsb
 
-    x = np.array(np.asarray(x0, dtype=float).ravel(), dtype=np.float64)
+    x = np.array(x0, dtype=np.float64).ravel()  # a copy: setulb updates it in place
     n = x.shape[0]
     nbd = np.zeros(n, np.int32)
     low = np.zeros(n, np.float64)
