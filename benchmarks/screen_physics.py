@@ -23,14 +23,14 @@ import pandas as pd
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
-from pigp_torch.optimizers.physics_bo import relaxed_stages
+from pigp_torch.optimizers.physics_bo import BROADER_SHAPE, relaxed_stages
 from pigp_torch.prior import PhysicsPrior
 
 
 def parse_variant(text: str):
     """``name`` or ``name=key=value,key=value`` -> (name, options); values are numbers,
     ``True``/``False`` or words. Keys ``relax.ARG`` set the prior check's later stages to
-    ``relaxed_stages(ARG=value, ...)`` (e.g. ``relax.f_inf_std=0.3``)."""
+    ``[BROADER_SHAPE, *relaxed_stages(ARG=value, ...)]`` (e.g. ``relax.f_inf_std=0.3``)."""
     name, _, rest = text.partition("=")
     options = {}
     for item in filter(None, rest.split(",")):
@@ -45,7 +45,7 @@ def parse_variant(text: str):
         k.removeprefix("relax."): options.pop(k) for k in list(options) if k.startswith("relax.")
     }
     if stages:
-        options["relax"] = list(relaxed_stages(**stages))
+        options["relax"] = [BROADER_SHAPE, *relaxed_stages(**stages)]
     return name, options
 
 

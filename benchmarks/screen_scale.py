@@ -34,13 +34,18 @@ def wide_stages(log_beta_std: float = 3.0, scale_only_first: bool = False) -> li
 
 #: name -> pigp-physics options (``{}``: the defaults).
 VARIANTS = {
-    "D": {},
+    "D": {},  # the defaults (since 2026-12-04 with the broader-shape stage, = H3)
+    "D0": {"relax": list(relaxed_stages())},  # the defaults before it
     "B5": {"log_beta_std": 0.5},
     "W": {"log_beta_std": 1.0, "f_inf_std": 0.1, "relax": wide_stages()},
     "R": {"evidence_margin": 1.5, "relax": wide_stages()},
     "R3": {"evidence_margin": 1.0, "relax": wide_stages()},
     "Rb": {"evidence_margin": 1.5, "relax": wide_stages(scale_only_first=True)},
     "RE": {"evidence_margin": 1.5, "evidence_from": 10, "relax": wide_stages()},
+    # scale hypotheses: the given shape x1/3 (and x3) with the given, tight scale prior, before
+    # the wider stages (the same prior width, so no Occam cost against the given model)
+    "H3": {"relax": [{"shape_factor": 1 / 3}, *relaxed_stages()]},
+    "H33": {"relax": [{"shape_factor": 1 / 3}, {"shape_factor": 3.0}, *relaxed_stages()]},
 }
 
 

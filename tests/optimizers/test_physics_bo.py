@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
-from pigp_torch.optimizers.physics_bo import RELAXED_STAGES, PhysicsModelBO, _extend_theta
+from pigp_torch.optimizers.physics_bo import (
+    BROADER_SHAPE,
+    RELAXED_STAGES,
+    PhysicsModelBO,
+    _extend_theta,
+    relaxed_stages,
+)
 from pigp_torch.prior import PhysicsPrior
 
 DT = torch.float64
@@ -147,7 +153,7 @@ def test_a_wrong_scale_moves_on_by_the_evidence():
     evidence = [n for n in bo.notices if n["log_evidence_ratio"] is not None]
     assert evidence and evidence[0]["log_evidence_ratio"] > bo.evidence_margin
     assert "log evidence" in evidence[0]["message"]
-    assert bo.model.log_beta_std == RELAXED_STAGES[0]["log_beta_std"] or bo.stage == 2
+    assert bo.stage >= 1
 
 
 def test_evidence_from_starts_the_evidence_comparison_earlier():
@@ -197,3 +203,51 @@ def test_a_run_repeats_to_the_bit():
         assert bo.relaxed  # the run went through a second model
         runs.append(torch.stack(bo.X).numpy())
     assert np.array_equal(runs[0], runs[1])
+
+
+def test_the_first_stage_is_the_given_shape_three_times_broader_with_the_same_priors():
+    """Stage 1 of the defaults: B / 3 with the given model's prior widths (no Occam cost); its
+    warm start keeps the fitted curvature beta B; a bad factor is refused."""
+    prior = _prior(_precision(0))
+    assert RELAXED_STAGES[0] == BROADER_SHAPE == {"shape_factor": 1 / 3}
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2)
+    given = bo.model
+    given.theta = torch.cat([torch.tensor(MU, dtype=DT), torch.tensor([-0.7, 0.2], dtype=DT)])
+    broad = bo._stage_model(1)
+    torch.testing.assert_close(broad.B, given.B / 3, rtol=1e-15, atol=0)
+    assert (broad.n_params, broad.log_beta_std, broad.log_c_std, broad.f_inf_std) == (
+        given.n_params, given.log_beta_std, given.log_c_std, given.f_inf_std)  # fmt: skip
+    X = (torch.rand(7, D, generator=torch.Generator().manual_seed(3), dtype=DT) * 2 - 1) * HALF
+    torch.testing.assert_close(broad.form(X, broad.theta), given.form(X), rtol=1e-13, atol=0)
+    assert float(broad.theta[D + 1]) == pytest.approx(0.2 + math.log(3), rel=1e-13)
+    for bad in (0.0, -1.0, float("nan")):
+        bo = PhysicsModelBO(prior.bounds, prior, relax=[{"shape_factor": bad}])
+        bo.model.theta = given.theta
+        with pytest.raises(ValueError, match="shape_factor"):
+            bo._stage_model(1)
+
+
+def test_a_three_times_broader_peak_moves_to_the_broader_shape_at_the_first_check():
+    """The machine's peak is the prior's shape 3x broader: the first evidence comparison (10
+    readings on, every third ask) moves to stage 1 with a notice, and the refit there needs no
+    scale far out in its prior. With the right shape the same check never moves."""
+    prior = _prior(_precision(0))
+    centre = [0.004, -0.003, 0.002, -0.001, 0.003]
+    broad = _machine(_prior(_precision(0) / 3.0), centre, c=0.6)
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    _run(bo, broad, 20, prior.noise)
+    assert bo.stage == 1 and len(bo.notices) == 1
+    note = bo.notices[0]
+    assert note["stage"] == 1 and note["n"] == 12  # the first check: 12 readings
+    assert note["log_evidence_ratio"] > bo.evidence_margin
+    assert "shape_factor = 0.333333" in note["message"]
+    assert abs(float(bo.model.theta[D + 1])) < 2 * bo.model.log_beta_std
+    # the wide-scale stage alone (the defaults before the broader shape) leads by less at the
+    # same check: it pays for its wider prior
+    wide = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4, relax=list(relaxed_stages()))
+    _run(wide, broad, 12, prior.noise)
+    assert wide.notices[0]["n"] == 12
+    assert wide.notices[0]["log_evidence_ratio"] < note["log_evidence_ratio"] - 1.0
+    right = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    _run(right, _machine(prior, centre, c=0.6), 20, prior.noise)
+    assert right.stage == 0 and right.notices == []
