@@ -4,7 +4,8 @@ r"""Screen of pigp-physics prior-check variants on mismatch cases (tuning machin
 --budget 40 -o runs/screen_scale.csv``: one run per variant, case and machine (the kept prior
 ``docs/data/prior_spear3_seed0_surrogate.json``); prints each run's gain after 20 and 40
 evaluations and the evaluation of its first prior notice, then the medians; writes the rows to
-``-o`` after every run. Variant names are the keys of :data:`VARIANTS`.
+``-o`` after every run. Variant names are the keys of :data:`VARIANTS`; besides the suite's
+cases, ``scale*F`` scales the prior's shape by any factor ``F`` (e.g. ``scale*2``).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.mismatch import cases
+from pigp_torch.benchmark.mismatch import Case, cases, scaled
 from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.benchmark.scoring import run_scores
 from pigp_torch.commands.compare import seed_list
@@ -63,6 +64,10 @@ def main(argv=None) -> int:
     base = PhysicsPrior.load(PRIOR)
     bounds = Spear3Coupling(1).bounds
     by_name = {c.name: c for c in cases(lambda **k: None, (bounds[1] - bounds[0]) / 2)}
+    for name in args.cases:  # other scales than the suite's: "scale*F" (F > 0, e.g. scale*2)
+        if name not in by_name and name.startswith("scale*"):
+            f = float(name.removeprefix("scale*"))
+            by_name[name] = Case(name, lambda p, f=f: scaled(p, f))
     rows = []
     for name in args.cases:
         case = by_name[name]

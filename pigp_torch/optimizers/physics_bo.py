@@ -82,10 +82,11 @@ class PhysicsModelBO(AskTellOptimizer):
             ``"model"``: the model ring's own, :math:`2 c_m \Sigma`; ``"auto"`` (default): the
             ensemble's when the prior has one.
         prior_check: test whether the physics prior still explains the readings, and move,
-            for good, to models with wider priors when it does not (default on). The models
-            are the given one (stage 0) and the stages of ``relax``, each a set of options over
-            the given ones. From :math:`n \ge p + 5` readings on (:math:`p` parameters of the
-            current model; the evidence test from ``evidence_from`` if given) two tests run:
+            for good, to other models (another scale of the shape, wider priors) when it does
+            not (default on). The models are the given one (stage 0) and the stages of
+            ``relax``, each a set of options over the given ones. From :math:`n \ge p + 5`
+            readings on (:math:`p` parameters of the current model; the evidence test from
+            ``evidence_from`` if given) two tests run:
 
             * the misfit of the fitted form at every ask (residual GP excluded),
               :math:`z = (\chi^2 - \nu)/\sqrt{2\nu}`, :math:`\chi^2 = \sum_i (y_i -
@@ -335,7 +336,7 @@ class PhysicsModelBO(AskTellOptimizer):
             if ratios[best] > self.evidence_margin:
                 target = best
                 lead = f"+{ratios[best]:.1f} > {self.evidence_margin:g}"
-                reasons.append(f"wider priors explain them better (log evidence {lead})")
+                reasons.append(f"stage {best}'s model explains them better (log evidence {lead})")
         if target is None:
             return
         model = self._stage_model(target)
