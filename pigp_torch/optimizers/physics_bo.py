@@ -54,8 +54,7 @@ class PhysicsModelBO(AskTellOptimizer):
             fitted centre's uncertainty in the metric of :math:`B`. Near the peak the form is
             flat, so readings there say little about where the centre is; the most informative
             ones lie at about :math:`\sqrt{c/2}` from it in that metric. Default 3 (every
-            third ask; 0 turns it off): on the tuning machines it cut the median steps to 95 %
-            of the gain from 57 to about 40 without lowering the gain after 20.
+            third ask; 0 turns it off).
         adapt_box: shrink and grow the trust box like TuRBO (Eriksson et al. 2019), counting
             asks: a *success* when the best posterior mean over the told points rose by more
             than ``success_tol`` since the previous ask, else a *failure*;
@@ -457,11 +456,10 @@ def relaxed_stages(log_beta_std: float = 3.0, f_inf_std: float = 0.1) -> tuple[d
 #: A broader-shape hypothesis: the given shape :math:`B` divided by 3 (``shape_factor``
 #: multiplies it), with the given, tight prior on its scale. Against the given model it pays
 #: no Occam factor (the same parameters, the same prior widths), so the evidence prefers it as
-#: soon as the readings do, where the wide-scale stage must first earn its wider prior. On the
-#: tuning machines (seeds 101-112, 40 evaluations) it raised the median gain after 40 of a 3x
-#: too narrow prior shape from 0.83 to 0.90 and left the right prior's at 0.95 (0.96 without);
-#: the mirror hypothesis (shape x3, a narrower peak) lowered the right prior's runs and is not
-#: a stage.
+#: soon as the readings do, where the wide-scale stage must first earn its wider prior. Only
+#: the broader side is a stage: a shape too narrow is the case the fit cannot leave by itself
+#: (a narrow shape fits the readings as a lower, nearer peak), while a shape too broad already
+#: shows in the residuals and the wide-scale stage.
 BROADER_SHAPE = {"shape_factor": 1 / 3}
 
 #: The stages of :class:`PhysicsModelBO`'s prior check after the given model:
