@@ -96,7 +96,8 @@ def first_moves(df: pd.DataFrame) -> pd.Series:
         Series indexed by ``(method, machine_seed)``, only the runs that moved (``step + 1`` of
         the first move, an evaluation count).
     """
-    notice = df["notice"].fillna("") if "notice" in df.columns else pd.Series("", index=df.index)
+    # A CSV whose runs wrote no notice reads the column back as float NaN: compare, not fill.
+    notice = df["notice"] if "notice" in df.columns else pd.Series("", index=df.index)
     moved = df[notice.eq("prior_rejected")]
     return moved.groupby(["method", "machine_seed"])["step"].min() + 1
 

@@ -114,3 +114,5 @@ def test_first_moves_counts_each_run_once_at_its_first_notice():
     first = first_moves(pd.concat([a, b, c], ignore_index=True))
     assert first.to_dict() == {("pigp-physics", 1): 2}
     assert first_moves(c.drop(columns="notice")).empty
+    # a CSV whose runs wrote no notice reads the column back as float NaN
+    assert first_moves(c.assign(notice=float("nan"))).empty
