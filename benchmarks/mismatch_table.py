@@ -10,6 +10,11 @@ not below either by more than 0.05), and when the prior check moved on.
 
     python benchmarks/mismatch_table.py runs/mismatch_priors.csv runs/mismatch_maps.csv \\
         --control runs/table_main.csv runs/table_xopt.csv
+
+The baselines' runs may also come as kept per-run scores (``--baseline-scores``, the output of
+``benchmarks/run_scores.py``, e.g. ``docs/data/scores_all_methods_2026-12-04.csv``): their
+``control`` rows of ``ml2`` and ``xopt-ucb`` join the control's, so the table is rebuilt
+without rerunning the baselines.
 """
 
 from __future__ import annotations
@@ -28,16 +33,26 @@ def _iqr(v: pd.Series) -> str:
     return f"{q.iloc[1]:.2f} ({q.iloc[0]:.2f}–{q.iloc[2]:.2f})"
 
 
+def _kept_baselines(path: str) -> pd.DataFrame:
+    """The ``control`` runs of the baselines in a per-run score CSV of ``run_scores.py``."""
+    s = pd.read_csv(path)
+    return s[(s["case"] == "control") & s["method"].isin(BASELINES)].drop(columns="case")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("csv", nargs="+", help="mismatch CSVs (with a case column)")
     p.add_argument("--control", nargs="+", required=True, help="benchmark run tables")
+    p.add_argument(
+        "--baseline-scores", nargs="*", default=[], help="per-run score CSVs of the baselines"
+    )
     args = p.parse_args(argv)
     mm = pd.concat([pd.read_csv(f) for f in args.csv], ignore_index=True)
     seeds = sorted(mm["machine_seed"].unique())
     ctl = pd.concat([pd.read_csv(f) for f in args.control], ignore_index=True)
     ctl = ctl[ctl["machine_seed"].isin(seeds)]
-    ctl_scores = run_scores(ctl)
+    ctl_scores = pd.concat([run_scores(ctl), *map(_kept_baselines, args.baseline_scores)])
+    ctl_scores = ctl_scores[ctl_scores["machine_seed"].isin(seeds)]
     rows = [
         "| case | pigp-physics gain 40 | gain 100 | ML-II 40 / 100 | Xopt UCB 40 / 100 | "
         "rule 100 | rule 40 | moved on (runs, median step) |",

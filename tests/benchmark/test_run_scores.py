@@ -57,3 +57,42 @@ def test_the_mismatch_table_counts_runs_that_moved_not_notices():
     row = table(pd.concat([a, b, c], ignore_index=True).assign(case="rot45")).iloc[0]
     assert row["rejected"] == "2/3"
     assert row["rejected_at"] == 3.0  # evaluations 2 (run 1's first move) and 4 (run 2's)
+
+
+def test_the_mismatch_table_takes_the_baselines_from_kept_scores(script, tmp_path, capsys):
+    """The suite's rules compare pigp-physics with baselines whose runs are kept only as
+    per-run scores: those scores decide the rules, and their other methods are ignored."""
+    up = np.minimum(np.linspace(0.5, 1.5, 100), 1.5)  # gain after 40: 0.39, after 100: 1.0
+    slow = np.linspace(0.5, 0.9, 100)  # gain after 40 0.16, after 100 0.40
+    physics = pd.concat([_run("pigp-physics", s, up) for s in (1, 2)], ignore_index=True)
+    mm = tmp_path / "mm.csv"
+    physics.assign(case="scale×3").to_csv(mm, index=False)
+    control = tmp_path / "control.csv"
+    physics.to_csv(control, index=False)
+    baselines = pd.concat(
+        [_run("ml2", s, up) for s in (1, 2)]  # as good as pigp-physics: rule 100 holds (≥)
+        + [_run("xopt-ucb", s, slow) for s in (1, 2)]
+        + [_run("ml2", 3, slow)],  # another machine: not in the suite, left out
+        ignore_index=True,
+    ).assign(ask_time_s=0.01, notice=None)
+    raw = tmp_path / "baselines.csv"
+    baselines.to_csv(raw, index=False)
+    kept = tmp_path / "scores.csv"
+    assert script.main([str(raw), "-o", str(kept)]) == 0
+    extra = pd.read_csv(kept).assign(method="pigp-physics", gain_40=0.0)  # ignored
+    pd.concat([pd.read_csv(kept), extra]).to_csv(kept, index=False)
+    table = load_script("mismatch_table")
+    assert table.main([str(mm), "--control", str(control), "--baseline-scores", str(kept)]) == 0
+    rows = {r.split("|")[1].strip(): r for r in capsys.readouterr().out.splitlines() if "|" in r}
+    for case in ("control", "scale×3"):
+        cells = [c.strip() for c in rows[case].split("|")[1:-1]]
+        assert cells[1].startswith("0.39") and cells[2].startswith("1.00")
+        assert cells[3] == "0.39 / 1.00" and cells[4] == "0.16 / 0.40"
+        assert cells[5] == "yes" and cells[6] == "yes"
+    slower = tmp_path / "slower.csv"
+    pd.concat([_run("pigp-physics", s, slow) for s in (1, 2)]).assign(case="rot45").to_csv(
+        slower, index=False
+    )
+    assert table.main([str(slower), "--control", str(control), "--baseline-scores", str(kept)]) == 0
+    row = next(r for r in capsys.readouterr().out.splitlines() if r.startswith("| rot45"))
+    assert [c.strip() for c in row.split("|")[1:-1]][5:7] == ["**no**", "**no**"]
