@@ -346,7 +346,7 @@ class PhysicsModelBO(AskTellOptimizer):
         z_after, chi2_after, nu_after = self.misfit(X, Y)
         if len(Y) >= n_misfit:
             self.misfit_z = z_after
-        freed = ", ".join(f"{k} = {v:g}" for k, v in self.relax[target - 1].items())
+        freed = describe_stage(self.relax[target - 1])
         self.notify(
             "prior_rejected",
             f"physics prior rejected after {len(Y)} readings: "
@@ -465,6 +465,28 @@ BROADER_SHAPE = {"shape_factor": 1 / 3}
 #: The stages of :class:`PhysicsModelBO`'s prior check after the given model:
 #: :data:`BROADER_SHAPE`, then the two of :func:`relaxed_stages` (its defaults).
 RELAXED_STAGES = (BROADER_SHAPE, *relaxed_stages())
+
+
+#: Words for the stage options in a notice (an operator reads them in the progress line).
+_STAGE_WORDS = {
+    "shape_factor": "the given shape x {:.3g} (peak broader when < 1)",
+    "log_beta_std": "shape scale fitted (log std {:g})",
+    "f_inf_std": "background fitted (relative std {:g})",
+    "shape_std": "shape eigen-scales fitted (log std {:g})",
+    "center_cov_scale_factor": "centre prior {:g}x wider in variance",
+}
+
+
+def describe_stage(options: dict) -> str:
+    """A prior-check stage's options in words, e.g. ``{"shape_factor": 1/3}`` ->
+    ``"the given shape x 0.333 (peak broader when < 1) [shape_factor = 0.333333]"``; options
+    without words are given as ``key = value``. Each item ends with its option and value."""
+    items = []
+    for key, value in options.items():
+        words = _STAGE_WORDS.get(key)
+        raw = f"{key} = {value:g}" if isinstance(value, (int, float)) else f"{key} = {value}"
+        items.append(raw if words is None else f"{words.format(value)} [{raw}]")
+    return ", ".join(items)
 
 
 def _extend_theta(old: InverseSqrtPeakModel, new: InverseSqrtPeakModel) -> torch.Tensor:

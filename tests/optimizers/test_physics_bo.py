@@ -14,6 +14,7 @@ from pigp_torch.optimizers.physics_bo import (
     RELAXED_STAGES,
     PhysicsModelBO,
     _extend_theta,
+    describe_stage,
     relaxed_stages,
 )
 from pigp_torch.prior import PhysicsPrior
@@ -240,7 +241,10 @@ def test_a_three_times_broader_peak_moves_to_the_broader_shape_at_the_first_chec
     note = bo.notices[0]
     assert note["stage"] == 1 and note["n"] == 12  # the first check: 12 readings
     assert note["log_evidence_ratio"] > bo.evidence_margin
-    assert "shape_factor = 0.333333" in note["message"]
+    assert (
+        "the given shape x 0.333 (peak broader when < 1) [shape_factor = 0.333333]"
+        in (note["message"])
+    )
     assert abs(float(bo.model.theta[D + 1])) < 2 * bo.model.log_beta_std
     # the wide-scale stage alone (the defaults before the broader shape) leads by less at the
     # same check: it pays for its wider prior
@@ -251,3 +255,21 @@ def test_a_three_times_broader_peak_moves_to_the_broader_shape_at_the_first_chec
     right = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
     _run(right, _machine(prior, centre, c=0.6), 20, prior.noise)
     assert right.stage == 0 and right.notices == []
+
+
+def test_the_notice_describes_every_default_stage_in_words():
+    """An operator reads the stage a run moved to in words, with the option and its value
+    after them; an option without words is given as key = value."""
+    texts = [describe_stage(stage) for stage in RELAXED_STAGES]
+    assert texts[0] == "the given shape x 0.333 (peak broader when < 1) [shape_factor = 0.333333]"
+    assert texts[1] == (
+        "shape scale fitted (log std 3) [log_beta_std = 3], "
+        "background fitted (relative std 0.1) [f_inf_std = 0.1]"
+    )
+    assert texts[2].endswith(
+        "shape eigen-scales fitted (log std 1) [shape_std = 1], "
+        "centre prior 4x wider in variance [center_cov_scale_factor = 4]"
+    )
+    assert describe_stage({"center_std": 0.5, "noise": "auto"}) == (
+        "center_std = 0.5, noise = auto"
+    )
