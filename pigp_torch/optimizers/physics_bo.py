@@ -483,8 +483,9 @@ def describe_stage(options: dict) -> str:
     without words are given as ``key = value``. Each item ends with its option and value."""
     items = []
     for key, value in options.items():
-        words = _STAGE_WORDS.get(key)
-        raw = f"{key} = {value:g}" if isinstance(value, (int, float)) else f"{key} = {value}"
+        number = isinstance(value, (int, float))
+        raw = f"{key} = {value:g}" if number else f"{key} = {value}"
+        words = _STAGE_WORDS.get(key) if number else None
         items.append(raw if words is None else f"{words.format(value)} [{raw}]")
     return ", ".join(items)
 

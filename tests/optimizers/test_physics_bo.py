@@ -270,6 +270,6 @@ def test_the_notice_describes_every_default_stage_in_words():
         "shape eigen-scales fitted (log std 1) [shape_std = 1], "
         "centre prior 4x wider in variance [center_cov_scale_factor = 4]"
     )
-    assert describe_stage({"center_std": 0.5, "noise": "auto"}) == (
-        "center_std = 0.5, noise = auto"
+    assert describe_stage({"center_std": 0.5, "noise": "auto", "shape_std": "x"}) == (
+        "center_std = 0.5, noise = auto, shape_std = x"
     )
