@@ -129,14 +129,10 @@ def _locks(config, log_path: Path):
     return locks
 
 
-def _check_log_path(path: Path) -> None:
-    """The run log can be created: it does not exist and its folder is (or can be) writable."""
+def _check_log_folder(path: Path) -> None:
+    """The run log's folder is (or can be made) a writable folder."""
     import os
 
-    if path.exists():
-        raise ValueError(
-            f"the run log {path} exists: continue it with --resume {path}, or set another log path"
-        )
     folder = path.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
@@ -144,15 +140,64 @@ def _check_log_path(path: Path) -> None:
         raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
+    if path.is_dir():
+        raise ValueError(f"the run log {path} is a folder; give a file name")
+
+
+def _existing_log(path: Path) -> str:
+    """What an existing run log at ``path`` holds, in words (for the refusal and the dry run)."""
+    from pigp_torch.runlog import read_log
+
+    try:
+        records = read_log(path, warn=False)
+    except (ValueError, OSError) as err:
+        return f"it is not a run log that can be continued ({err})"
+    end = records.last_end
+    how = "ended " + end["status"] if end is not None else "no end record (a crash)"
+    return f"it holds {records.n_evaluations} evaluation(s), {how}"
+
+
+def _read_resumed(path: Path, *, warn_out=None):
+    """The run log to continue, read and its hash chain verified; its warnings (a torn last
+    line, no chain) are printed once, one plain line each, to ``warn_out``."""
+    from pigp_torch.runlog import read_log
+
+    records = read_log(path, warn=False)
+    if warn_out is not None:
+        for note in records.warnings:
+            say(warn_out, f"warning: {note}")
+    return records
+
+
+@contextlib.contextmanager
+def _plain_warnings():
+    """Python warnings printed as one plain line (``warning: message``, no file name or source
+    line) while the command runs; the run log's own warnings are printed by the command once."""
+    import warnings
+
+    from pigp_torch.runlog import RunLogWarning
+
+    previous = warnings.formatwarning
+    warnings.formatwarning = lambda message, *a, **k: f"warning: {message}\n"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RunLogWarning)
+            yield
+    finally:
+        warnings.formatwarning = previous
 
 
 def cmd_optimize(args) -> int:
+    with _plain_warnings():
+        return _optimize(args)
+
+
+def _optimize(args) -> int:
     import torch
 
     from pigp_torch.machine.errors import MachineError
     from pigp_torch.run import build_run, check_resume, load_config, logged_config
     from pigp_torch.runlock import LockHeld, holding
-    from pigp_torch.runlog import read_log
 
     torch.set_num_threads(1)  # an online run is measurement-bound; do not crowd the host
     out = sys.stdout
@@ -160,28 +205,39 @@ def cmd_optimize(args) -> int:
         raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
     from_header = False
     if args.resume is not None:
-        records = read_log(args.resume)  # read again once the lock is held
+        if Path(args.resume).is_dir():
+            raise ValueError(f"--resume {args.resume}: a folder, not a run log")
+        records = _read_resumed(args.resume, warn_out=sys.stderr)  # read again under the lock
         config = load_config(args.config) if args.config is not None else logged_config(records)
         from_header = args.config is None
         log_path = Path(args.resume)
     else:
         config = load_config(args.config)
-        _check_log_path(config.log)
+        _check_log_folder(config.log)
         log_path = config.log
     locks = _locks(config, log_path)
     try:
-        with holding(locks) as taken:
+        with holding(locks) as taken:  # the log's lock first: a log in use is refused (exit 4)
             for lock in taken:
                 if lock.stale:
                     say(sys.stderr, f"note: took over the stale lock {lock.path} of PID "
                                      f"{lock.stale.get('pid')} on {lock.stale.get('host')} "
                                      "(no longer running)")  # fmt: skip
+            if args.resume is None and config.log.exists():
+                what = (
+                    f"the run log {config.log} exists: continue it with --resume "
+                    f"{config.log}, or set another log path ({_existing_log(config.log)})"
+                )
+                if not args.dry_run:
+                    raise ValueError(what)
+                say(sys.stderr, f"note: {what}; a run with this file would be refused (exit "
+                                 f"{EXIT_INPUT})")  # fmt: skip
             if args.dry_run:  # the locks were free; a dry run does not keep them
                 for lock in reversed(taken):
                     lock.release()
             records = None
             if args.resume is not None:
-                records = read_log(args.resume)  # what the log holds now that it is ours
+                records = _read_resumed(args.resume)  # what the log holds now that it is ours
                 check_resume(config, records)
                 if records.n_evaluations >= config.budget:
                     raise ValueError(
@@ -211,13 +267,18 @@ def cmd_optimize(args) -> int:
     except LockHeld as err:
         say(sys.stderr, f"pigp optimize: refused: {err}")
         return EXIT_LOCKED
+    except OSError as err:  # a lock file or the log cannot be created: nothing was moved
+        if isinstance(err, FileNotFoundError):
+            raise
+        say(sys.stderr, f"pigp optimize: could not start the run: {err}; nothing was moved")
+        return EXIT_STOPPED
 
 
 def _run(args, setup, records, log_lock) -> int:
     from pigp_torch.loop import RunAborted, Terminated
     from pigp_torch.machine.errors import MachineError
     from pigp_torch.run import advance_simulated_noise
-    from pigp_torch.runlog import RunLog
+    from pigp_torch.runlog import LogWriteError, RunLog
 
     config = setup.config
     out = sys.stdout
@@ -228,13 +289,19 @@ def _run(args, setup, records, log_lock) -> int:
         say(out, "dry run: nothing was moved or written")
         return EXIT_OK
 
+    try:
+        if records is not None:
+            log = RunLog.append(args.resume, lock=log_lock, warn=False)
+        else:
+            log = RunLog.create(config.log, setup.header(), lock=log_lock)
+    except LogWriteError as err:
+        say(sys.stderr, f"pigp optimize: could not start the run: {err} (no run log was left "
+                         "behind); nothing was moved")  # fmt: skip
+        return EXIT_STOPPED
     if records is not None:
-        log = RunLog.append(args.resume, lock=log_lock)
         advance_simulated_noise(
             setup.machine, sum(int(r.get("reads", 1)) for r in records.evaluations)
         )
-    else:
-        log = RunLog.create(config.log, setup.header(), lock=log_lock)
     print_plan(setup, records, out)
     if records is not None:
         print_resume_state(setup, records, out)
@@ -257,6 +324,7 @@ def _run(args, setup, records, log_lock) -> int:
         dashboard = Dashboard(log.path, port=args.dashboard_port)
         say(out, f"dashboard: {dashboard.url} (while the run goes)")
     code = EXIT_STOPPED
+    end = None
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
         code = EXIT_OK
@@ -265,18 +333,26 @@ def _run(args, setup, records, log_lock) -> int:
         code = 128 + int(signum)
         say(sys.stderr, f"pigp optimize: interrupted ({type(err).__name__}: "
                          f"{signal.Signals(signum).name})")  # fmt: skip
+    except LogWriteError as err:  # disk full, I/O error: the loop stopped and restored
+        say(sys.stderr, f"pigp optimize: run stopped: {err}")
     except (MachineError, RunAborted) as err:
         say(sys.stderr, f"pigp optimize: run aborted: {type(err).__name__}: {err}")
     except Exception as err:  # a refused setting, a bug: the loop has restored the knobs
         say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
-        log.close()
+        log.close()  # never raises: every record was fsynced when written
         if dashboard is not None:
             dashboard.close()
-        end = print_summary(log.path, out)
+        with contextlib.suppress(Exception):  # the summary never hides the exit status
+            end = print_summary(log.path, out, log=log)
         with contextlib.suppress(OSError, ValueError):
             out.flush()
+    end = log.end_record if log.end_record is not None else end
     if end is not None and end.get("restored") is False:
         say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
+        return EXIT_NOT_RESTORED
+    if end is None and log.moved:  # the run ended before its end record: the knobs are unknown
+        say(sys.stderr, "pigp optimize: the run ended without an end record after moving the "
+                         "knobs: they may NOT be restored (exit status 3)")  # fmt: skip
         return EXIT_NOT_RESTORED
     return code

@@ -63,19 +63,34 @@ def say(out, text: str = "") -> None:
         print(text, file=out, flush=True)
 
 
-def print_summary(path: Path, out) -> dict | None:
-    """Print how the run ended (from the log's last end record); returns that record."""
+def print_summary(path: Path, out, log=None) -> dict | None:
+    """Print how the run ended; returns the end record used.
+
+    The end record is ``log.end_record`` when a :class:`~pigp_torch.runlog.RunLog` is given
+    and its session reached one (written to the file or not: a full disk never hides whether
+    the knobs were restored), else the log's last end record. The evaluations are counted from
+    the file.
+    """
     from pigp_torch.runlog import read_log
 
-    records = read_log(path)
-    end = records.last_end
+    records = None
+    try:
+        records = read_log(path, verify=False, warn=False)
+    except (OSError, ValueError) as err:
+        say(out, f"the run log could not be read back: {err}")
+    end = log.end_record if log is not None and log.end_record is not None else None
+    if end is None and records is not None:
+        end = records.last_end
     if end is None:
+        if log is not None and log.write_error:
+            say(out, f"run log: {path} (incomplete: a write failed: {log.write_error})")
         return None
-    names = records.knob_names
+    names = records.knob_names if records is not None else list(log.header.get("knob_names"))
     say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
-    start = records.starts[-1] if records.starts else {}
-    session = records.n_evaluations - int(start.get("first_step", 0))
-    say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
+    if records is not None:
+        start = records.starts[-1] if records.starts else {}
+        session = records.n_evaluations - int(start.get("first_step", 0))
+        say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
     best = end.get("best")
     if best:
         say(
@@ -98,7 +113,11 @@ def print_summary(path: Path, out) -> dict | None:
         say(out, f"knobs restored to {end.get('restored_to')}, readback: {fmt_knobs(names, final)}")
     elif final is not None:
         say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
-    say(out, f"run log: {path}")
+    if log is not None and log.write_error:
+        kept = "the end record is in it" if log.end_written else "the end record is NOT in it"
+        say(out, f"run log: {path} (a write failed: {log.write_error}; {kept})")
+    else:
+        say(out, f"run log: {path}")
     return end
 
 

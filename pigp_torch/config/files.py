@@ -20,6 +20,9 @@ from pigp_torch.config.schema import (
     SimMachineConfig,
 )
 
+#: pydantic error types of a value of the wrong type in strict mode (a number, a flag).
+_TYPE_ERRORS = ("float_type", "int_type", "bool_type")
+
 _SECTIONS = {
     (): RunConfig,
     ("objective",): ObjectiveConfig,
@@ -61,6 +64,8 @@ def format_errors(err: ValidationError, data: Any) -> list[str]:
                     "unlimited: the step limit must be given explicitly)"
                 )
         else:
+            if e["type"] in _TYPE_ERRORS:
+                msg += f", got {e['input']!r} (booleans and quoted text are not numbers)"
             line = f"{where}: {msg}" if where else msg
         lines.append(line)
     return lines
@@ -138,10 +143,20 @@ def read_run_file(path: str | Path) -> Any:
 
     Raises:
         FileNotFoundError: no such file.
-        ConfigError: not valid YAML/JSON, or a key given twice.
+        ConfigError: a folder, a file that cannot be read (permissions, not UTF-8 text), not
+            valid YAML/JSON, or a key given twice.
     """
     path = Path(path)
-    text = path.read_text(encoding="utf-8")
+    if path.is_dir():
+        raise ConfigError(f"{path} is a folder, not a run file (give the YAML or JSON file)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the run file: {err.strerror or err}") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not a text file (UTF-8): {err.reason}") from None
     if path.suffix.lower() == ".json":
         try:
             data = json.loads(text, object_pairs_hook=_no_duplicates_json)

@@ -25,8 +25,14 @@ Relative paths (``prior``, ``log``, ``lock_dir``) are taken relative to the run 
 
 A key given twice in a file is an error (YAML and JSON alike), not "the last one wins".
 ``max_step`` has no default: a number, a per-knob mapping, or the word ``unlimited``; ``null``
-is refused. :meth:`RunConfig.warnings` names every step limit above 10 % of its knob's range
-(``pigp optimize`` prints them).
+is refused. A fraction above 1 (more than a whole half-range of each knob per set), or a
+per-knob limit above half that knob's range, is refused: the one way to run without a step limit
+is to write ``unlimited``. :meth:`RunConfig.warnings` names every step limit above 10 % of its
+knob's range (``pigp optimize`` prints them).
+
+Numbers must be numbers (pydantic strict mode): ``true``/``false`` or a quoted ``"0.5"`` where a
+number belongs (bounds, limits, timings, seeds, the budget) is refused, not converted; an integer
+field takes no ``5.0``; ``maximize`` takes ``true`` or ``false`` only.
 
 ``method.name`` is one of the methods that run files accept (``pigp``, ``pigp-fast``,
 ``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``; :mod:`pigp_torch.methods` describes them)
@@ -52,6 +58,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PrivateAttr,
+    Strict,
     ValidationInfo,
     field_validator,
     model_validator,
@@ -62,6 +69,19 @@ from pigp_torch._utils import DTYPE, max_step_tensor
 
 class ConfigError(ValueError):
     """An invalid run configuration (the message lists every problem, one per line)."""
+
+
+#: A number in a run file: an int or a float, never a boolean or a string (pydantic strict mode;
+#: ``true`` would otherwise run as 1 and ``"0.5"`` be converted).
+Number = Annotated[float, Strict()]
+#: An integer in a run file: never a boolean, a float or a string.
+Integer = Annotated[int, Strict()]
+#: A yes/no value in a run file: ``true`` or ``false`` only (not 1, not "yes" as a string).
+Flag = Annotated[bool, Strict()]
+
+
+#: Largest ``max_step`` fraction a run file may give: one half-range of each knob per set.
+MAX_STEP_FRACTION = 1.0
 
 
 class _Section(BaseModel):
@@ -85,11 +105,11 @@ class SimMachineConfig(_Section):
     """
 
     kind: Literal["sim"]
-    error_seed: int = 1
+    error_seed: Integer = 1
     optics: Literal["user", "design", "low_emittance"] = "user"
-    noise: float = Field(0.04, ge=0.0)
-    seed: int = 0
-    x_init: dict[str, float] | None = None
+    noise: Number = Field(0.04, ge=0.0)
+    seed: Integer = 0
+    x_init: dict[str, Number] | None = None
 
 
 class EpicsMachineConfig(_Section):
@@ -113,13 +133,13 @@ class EpicsMachineConfig(_Section):
     readback_pvs: dict[str, str] | None = None
     setpoint_suffix: str = ":CurrSetpt"
     readback_suffix: str = ":Curr1"
-    settle_time: float = Field(0.5, ge=0.0)
-    tolerance: float | None = Field(None, gt=0.0)
-    tolerance_fraction: float | None = Field(None, gt=0.0, lt=1.0)
-    n_average: int = Field(1, ge=1)
-    average_interval: float = Field(0.0, ge=0.0)
-    timeout: float = Field(2.0, gt=0.0)
-    stale_timeout: float = Field(10.0, gt=0.0)
+    settle_time: Number = Field(0.5, ge=0.0)
+    tolerance: Number | None = Field(None, gt=0.0)
+    tolerance_fraction: Number | None = Field(None, gt=0.0, lt=1.0)
+    n_average: Integer = Field(1, ge=1)
+    average_interval: Number = Field(0.0, ge=0.0)
+    timeout: Number = Field(2.0, gt=0.0)
+    stale_timeout: Number = Field(10.0, gt=0.0)
 
     @model_validator(mode="after")
     def _one_tolerance(self) -> EpicsMachineConfig:
@@ -135,7 +155,7 @@ class ObjectiveConfig(_Section):
     """What is optimized: ``pv`` (EPICS only) and the direction."""
 
     pv: str | None = None
-    maximize: bool = True
+    maximize: Flag = True
 
 
 class MethodConfig(_Section):
@@ -144,7 +164,7 @@ class MethodConfig(_Section):
     seed; Nelder–Mead and RCDS are deterministic)."""
 
     name: str
-    seed: int = 0
+    seed: Integer = 0
     options: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -182,20 +202,20 @@ class RunConfig(_Section):
     """
 
     machine: MachineConfig
-    knobs: dict[str, tuple[float, float]]
+    knobs: dict[str, tuple[Number, Number]]
     objective: ObjectiveConfig = Field(default_factory=ObjectiveConfig)
     method: MethodConfig
     prior: Path | None = None
-    budget: int = Field(ge=1)
-    max_step: float | dict[str, float] | Literal["unlimited"]
+    budget: Integer = Field(ge=1)
+    max_step: Number | dict[str, Number] | Literal["unlimited"]
     log: Path
     restore: Literal["initial", "best"] = "initial"
-    read_retries: int = Field(2, ge=0)
-    retry_interval: float = Field(0.1, ge=0.0)
-    objective_floor: float | None = None
-    readback_tolerance: float = Field(1e-3, ge=0.0)
-    restore_attempts: int = Field(3, ge=1, le=100)
-    restore_interval: float = Field(1.0, ge=0.0)
+    read_retries: Integer = Field(2, ge=0)
+    retry_interval: Number = Field(0.1, ge=0.0)
+    objective_floor: Number | None = None
+    readback_tolerance: Number = Field(1e-3, ge=0.0)
+    restore_attempts: Integer = Field(3, ge=1, le=100)
+    restore_interval: Number = Field(1.0, ge=0.0)
     lock_dir: Path | None = None
 
     _prior = PrivateAttr(default=None)
@@ -208,7 +228,7 @@ class RunConfig(_Section):
                 "null is not a step limit: give a fraction of each knob's half-range (e.g. 0.1), "
                 "a {knob: value} mapping, or write unlimited to run without a step limit"
             )
-        if isinstance(value, str) and value != "unlimited":
+        if isinstance(value, bool) or (isinstance(value, str) and value != "unlimited"):
             raise ValueError(
                 f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
                 "the word unlimited (no step limit)"
@@ -240,8 +260,25 @@ class RunConfig(_Section):
             bad = [k for k, v in self.max_step.items() if not v > 0]
             if bad:
                 raise ValueError(f"max_step: the limits of {bad} must be positive")
+            big = [
+                f"{k} {v:g} > {(self.knobs[k][1] - self.knobs[k][0]) / 2:g}"
+                for k, v in self.max_step.items()
+                if v > (self.knobs[k][1] - self.knobs[k][0]) / 2
+            ]
+            if big:
+                raise ValueError(
+                    f"max_step: the limits of {', '.join(big)} exceed half the knob's range (a "
+                    "whole half-range per set); write max_step: unlimited to run without a "
+                    "step limit on purpose"
+                )
         elif isinstance(self.max_step, float) and not self.max_step > 0:
             raise ValueError(f"max_step must be positive (or unlimited), got {self.max_step}")
+        elif isinstance(self.max_step, float) and self.max_step > MAX_STEP_FRACTION:
+            raise ValueError(
+                f"max_step {self.max_step:g} is above {MAX_STEP_FRACTION:g}: more than a whole "
+                "half-range of each knob per set (max_step is a fraction of each knob's "
+                "half-range); write max_step: unlimited to run without a step limit on purpose"
+            )
         m = self.machine
         if isinstance(m, SimMachineConfig):
             if self.objective.pv is not None:

@@ -37,6 +37,9 @@ def check_method(config: RunConfig) -> None:
             f"method.options: unknown option(s) {unknown} for {method.name} "
             f"(allowed: {', '.join(sorted(allowed))})"
         )
+    problems = _option_type_problems(spec, method.options)
+    if problems:
+        raise ValueError(f"method.options: {'; '.join(problems)}")
     if spec.needs_prior and not config.objective.maximize:
         raise ValueError(
             f"method {method.name} needs objective.maximize: true "
@@ -44,6 +47,46 @@ def check_method(config: RunConfig) -> None:
         )
     if spec.needs_prior and config.prior is None:
         raise ValueError(f"prior: method {method.name} needs a prior file (pigp build-prior)")
+
+
+def _option_defaults(spec) -> dict[str, Any]:
+    """Default value of each option of ``spec`` that has one (the builder's keywords, then those
+    of the classes it forwards to)."""
+    import inspect
+
+    allowed, out = spec.option_names(), {}
+    for func in (spec.builder, *(cls.__init__ for cls in spec.forwards_to)):
+        for p in inspect.signature(func).parameters.values():
+            if p.name in allowed and p.default is not p.empty:
+                out.setdefault(p.name, p.default)
+    return out
+
+
+def _is_number_text(value: Any) -> bool:
+    if not isinstance(value, str):
+        return False
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def _option_type_problems(spec, options: dict[str, Any]) -> list[str]:
+    """Options whose value is of the wrong kind, one line each: a quoted number anywhere, a
+    boolean where the builder's default is a number, anything but ``true``/``false`` where it
+    is a flag (numbers must be numbers, as everywhere in a run file)."""
+    defaults, problems = _option_defaults(spec), []
+    for name, value in options.items():
+        default = defaults.get(name)
+        number = isinstance(default, (int, float)) and not isinstance(default, bool)
+        if _is_number_text(value):
+            problems.append(f"{name}: {value!r} is quoted text; write the number without quotes")
+        elif number and isinstance(value, bool):
+            problems.append(f"{name}: {value!r} is not a number (default {default!r})")
+        elif isinstance(default, bool) and not isinstance(value, bool):
+            problems.append(f"{name}: {value!r} is not true or false (default {default!r})")
+    return problems
 
 
 def load_prior(path: Path, names: list[str]) -> PhysicsPrior:

@@ -27,9 +27,20 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
 While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.runlock.log_lock`,
 ``<log>.lock``): a second writer is refused with :class:`~pigp_torch.runlock.LockHeld`.
 
-Each record is written with one ``write``, then ``flush`` and ``os.fsync``: a crash (even a
+Each record is written with one unbuffered ``os.write``, then ``os.fsync``: a crash (even a
 power cut after the call returned) loses no completed evaluation. A last line cut short by a crash
-during a write is ignored when reading (with a warning) and cut off before appending.
+during a write (no final newline) is ignored when reading (with one
+:class:`~pigp_torch.runlog.format.TornLineWarning`) and cut off before appending. A write that
+fails (disk full) raises :class:`~pigp_torch.runlog.format.LogWriteError` and leaves nothing of
+its record in the file; a log whose header could not be written is removed.
+
+**Tamper evidence.** Every record carries ``hash``, a sha256 chained to the previous record's
+(the header starts the chain; :mod:`pigp_torch.runlog.format`). :func:`read_log` verifies the
+chain and refuses a log edited anywhere — a changed reading, initial knob or header bound, a line
+removed or inserted — naming the first line that does not match. Logs written before the chain
+(versions 1 and 2) are still read and resumed, with an
+:class:`~pigp_torch.runlog.format.UnchainedLogWarning`: they cannot be verified (records
+appended to such a log stay unchained).
 
 Why JSON lines and not CSV/Parquet: records of different types share one file, a reader needs
 nothing but ``json``, appending never rewrites earlier bytes, and floats round-trip exactly
@@ -47,7 +58,12 @@ from pigp_torch.runlog.format import (
     FORMAT_VERSION,
     READABLE_VERSIONS,
     RECORD_TYPES,
+    LogWriteError,
     ReplayError,
+    RunLogWarning,
+    TornLineWarning,
+    UnchainedLogWarning,
+    chain_hash,
     file_sha256,
 )
 from pigp_torch.runlog.reader import RunRecords, read_log
@@ -60,9 +76,14 @@ __all__ = [
     "FORMAT_VERSION",
     "READABLE_VERSIONS",
     "RECORD_TYPES",
+    "LogWriteError",
     "ReplayError",
     "RunLog",
+    "RunLogWarning",
     "RunRecords",
+    "TornLineWarning",
+    "UnchainedLogWarning",
+    "chain_hash",
     "evaluation_rows",
     "file_sha256",
     "read_log",

@@ -12,9 +12,14 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.runlog.format import (
+    CHAINED_VERSION,
     FORMAT_TAG,
+    HASH_KEY,
     READABLE_VERSIONS,
     RECORD_TYPES,
+    TornLineWarning,
+    UnchainedLogWarning,
+    chain_hash,
 )
 
 
@@ -32,6 +37,14 @@ class RunRecords:
         discarded: ``discarded`` records (readings thrown away).
         notices: ``notice`` records (what the optimizer decided about itself, e.g. that its
             physics prior does not explain the readings).
+        chained: whether the log carries the hash chain (version 3); an older log cannot be
+            verified.
+        verified: whether the chain was checked (``read_log(verify=True)`` on a chained log).
+        last_hash: the last complete record's ``hash`` (``None`` without a chain).
+        torn_line: the number of a last line cut short by an interrupted write and ignored
+            (``None`` if there was none).
+        warnings: what a reader should be told (the torn line, a log without a chain), one line
+            each, already phrased for a person.
     """
 
     path: Path
@@ -42,6 +55,11 @@ class RunRecords:
     intents: list[dict] = field(default_factory=list)
     discarded: list[dict] = field(default_factory=list)
     notices: list[dict] = field(default_factory=list)
+    chained: bool = False
+    verified: bool = False
+    last_hash: str | None = None
+    torn_line: int | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def last_intent(self) -> dict | None:
@@ -90,50 +108,83 @@ class RunRecords:
         return i, self.X()[i], float(Y[i])
 
 
-def read_log(path: str | Path) -> RunRecords:
+def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> RunRecords:
     r"""Read and check a run log.
 
     Checks: the first record is a header with the expected format tag and version; every record
     has a known type; evaluation steps are ``0, 1, 2, ...`` with ``x`` of ``len(knob_names)``
-    finite values and a finite ``y``. A last line cut short (no final newline, not valid JSON) is
-    skipped with a warning; an invalid line elsewhere is an error.
+    finite values and a finite ``y``; with ``verify`` (default) every record of a version-3 log
+    matches the hash chain (:mod:`pigp_torch.runlog.format`), so a log edited anywhere is
+    refused with the first line that does not match. A last line without its final newline was
+    cut short by an interrupted write (the writer ends every record with one): it is skipped;
+    an invalid line elsewhere is an error. A log of an older version (no chain) is read but
+    cannot be verified.
 
     Each returned record carries ``_line`` (its 1-based line number).
 
+    Args:
+        path: the run log.
+        verify: check the hash chain (``False``: read an edited log anyway, e.g. to inspect it).
+        warn: issue a :class:`~pigp_torch.runlog.format.TornLineWarning` for a cut last line and
+            an :class:`~pigp_torch.runlog.format.UnchainedLogWarning` for a log without a chain
+            (the same lines are in :attr:`RunRecords.warnings` either way).
+
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not a run log, or an inconsistent one (the message names the line).
+        ValueError: not a run log, an inconsistent one, or (``verify``) one whose hash chain is
+            broken (the message names the line).
     """
     path = Path(path)
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path} is not a run log (not UTF-8 text: {err.reason})") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path} is a folder, not a run log") from None
     lines = text.split("\n")
     complete = text.endswith("\n")
     if lines and lines[-1] == "":
         lines.pop()
+    notes: list[str] = []
+    torn = None
+    if lines and not complete:
+        torn = len(lines)
+        lines.pop()
+        notes.append(
+            f"{path}: line {torn} was cut short by an interrupted write (a crash); it is ignored"
+        )
     records: list[dict] = []
     for k, line in enumerate(lines, start=1):
         try:
             rec = json.loads(line)
         except json.JSONDecodeError as err:
-            if k == len(lines) and not complete:
-                warnings.warn(
-                    f"{path}: ignoring the last line, cut short by an interrupted write",
-                    stacklevel=2,
-                )
-                break
             raise ValueError(f"{path}:{k}: not a JSON record ({err})") from err
         if not isinstance(rec, dict) or rec.get("type") not in RECORD_TYPES:
             raise ValueError(f"{path}:{k}: not a run-log record (type one of {RECORD_TYPES})")
-        rec["_line"] = k
         records.append(rec)
     if not records or records[0]["type"] != "header":
         raise ValueError(f"{path} is not a run log: the first record is not a header")
     header = records[0]
     if header.get("format") != FORMAT_TAG:
         raise ValueError(f"{path} is not a run log (format tag {header.get('format')!r})")
-    if header.get("version") not in READABLE_VERSIONS:
-        raise ValueError(f"{path}: unsupported run-log version {header.get('version')!r}")
-    out = RunRecords(path=path, header=header)
+    version = header.get("version")
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
+        raise ValueError(f"{path}: unsupported run-log version {version!r}")
+    chained = version >= CHAINED_VERSION
+    if not chained and HASH_KEY in header:
+        raise ValueError(
+            f"{path}:1: the header carries a hash but claims version {version} (the log was edited)"
+        )
+    last_hash = _check_chain(records, path, verify) if chained else None
+    if not chained:
+        notes.append(
+            f"{path}: written by an older version (run-log version {version}) without a hash "
+            "chain: its records cannot be verified"
+        )
+    for k, rec in enumerate(records, start=1):
+        rec["_line"] = k
+    out = RunRecords(path=path, header=header, chained=chained, verified=chained and verify)
+    out.last_hash, out.torn_line, out.warnings = last_hash, torn, notes
     d = len(out.knob_names) or None
     for rec in records[1:]:
         kind = rec["type"]
@@ -153,7 +204,38 @@ def read_log(path: str | Path) -> RunRecords:
             _check_evaluation(rec, len(out.evaluations), d, path)
             d = d or len(rec["x"])
             out.evaluations.append(rec)
+    if warn:
+        if torn is not None:
+            warnings.warn(notes[0], TornLineWarning, stacklevel=2)
+        if not chained:
+            warnings.warn(notes[-1], UnchainedLogWarning, stacklevel=2)
     return out
+
+
+def _check_chain(records: list[dict], path: Path, verify: bool) -> str | None:
+    """Verify the hash chain of ``records`` (``verify``) and return the last hash.
+
+    Raises:
+        ValueError: a record without its hash, or the first record that does not match.
+    """
+    previous = ""
+    for k, rec in enumerate(records, start=1):
+        logged = rec.get(HASH_KEY)
+        if not verify:
+            previous = logged if isinstance(logged, str) else previous
+            continue
+        if not isinstance(logged, str):
+            raise ValueError(
+                f"{path}:{k}: the record has no {HASH_KEY!r} (the log was edited); refused"
+            )
+        if chain_hash(previous, rec) != logged:
+            raise ValueError(
+                f"{path}:{k}: the record does not match the log's hash chain: the log was "
+                f"edited at line {k} (a record changed, or one removed or added before it); "
+                "refused"
+            )
+        previous = logged
+    return previous
 
 
 def _check_evaluation(rec: dict, expected_step: int, d: int | None, path: Path) -> None:

@@ -231,11 +231,17 @@ def test_help_lists_every_method_and_the_exit_codes(capsys):
 
 
 def test_dry_run_checks_the_log_path_and_prints_warnings(tmp_path, capsys):
-    """--dry-run refuses an existing log (as the run would) and a log folder it cannot write,
-    and prints the step-limit warnings."""
+    """--dry-run is not refused when the log exists (it writes nothing) but says so and what a
+    run would do; it refuses a log folder it cannot write, and prints the step-limit
+    warnings."""
     (tmp_path / "run.jsonl").write_text("")
-    assert cli.main(["optimize", "--config", write_config(tmp_path), "--dry-run"]) == 2
-    assert "exists: continue it with --resume" in capsys.readouterr().err
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert "exists: continue it with --resume" in captured.err
+    assert "a run with this file would be refused (exit 2)" in captured.err
+    assert "not a run log that can be continued" in captured.err  # an empty file
+    assert "plan: nelder-mead" in captured.out and "dry run: nothing was moved" in captured.out
+    assert (tmp_path / "run.jsonl").read_text() == ""
     config = write_config(tmp_path, "big.yaml", log="big.jsonl", max_step=0.5)
     assert cli.main(["optimize", "--config", config, "--dry-run"]) == 0
     assert "warning: max_step above 10 % of the knob's range" in capsys.readouterr().err
@@ -247,7 +253,8 @@ def test_dry_run_checks_the_log_path_and_prints_warnings(tmp_path, capsys):
 
 def test_resume_without_config_prints_the_verified_safety_limits(tmp_path, capsys):
     """--resume LOG alone: the header's configuration is verified against its sha256 and its
-    safety limits are printed; an edited header (a doubled step limit) exits 2."""
+    safety limits are printed; an edited header (a doubled step limit) exits 2 (the hash chain
+    names line 1)."""
     short = write_config(tmp_path, "b.yaml", budget=5, log="b.jsonl")
     assert cli.main(["optimize", "--config", short, "--quiet"]) == 0
     log = tmp_path / "b.jsonl"
@@ -261,4 +268,4 @@ def test_resume_without_config_prints_the_verified_safety_limits(tmp_path, capsy
     lines[0] = lines[0].replace('"max_step":0.1', '"max_step":0.2')
     log.write_text("".join(lines))
     assert cli.main(["optimize", "--resume", str(log), "--dry-run"]) == 2
-    assert "does not match its sha256" in capsys.readouterr().err
+    assert "b.jsonl:1: the record does not match the log's hash chain" in capsys.readouterr().err

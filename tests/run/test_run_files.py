@@ -334,15 +334,16 @@ def test_unlimited_and_large_step_limits_are_named_in_warnings():
     assert validate_config(sim()).warnings() == []
     cfg = validate_config(sim(max_step="unlimited"))
     assert cfg.machine_max_step() is None and "no step limit" in cfg.warnings()[0]
-    (line,) = validate_config(sim(max_step=1000)).warnings()
-    assert "01G-QSS4 10 (50000 %)" in line and "02G-QSS3" in line
+    (line,) = validate_config(sim(max_step=0.5)).warnings()
+    assert "01G-QSS4 0.005 (25 %)" in line and "02G-QSS3" in line
     (line,) = validate_config(sim(max_step={"01G-QSS4": 0.001, "02G-QSS3": 0.005})).warnings()
     assert "02G-QSS3" in line and "01G-QSS4" not in line
 
 
 def test_a_logged_configuration_is_verified_against_its_digest(tmp_path):
     """The header stores the configuration's sha256; logged_config accepts it as written and
-    refuses an edited header (a doubled step limit) or one without a digest."""
+    refuses an edited header (a doubled step limit) or one without a digest — a second check
+    behind the hash chain, which read_log applies first (verify=False reads past it here)."""
     from pigp_torch.run import logged_config
 
     cfg = validate_config(sim(), base_dir=tmp_path)
@@ -352,12 +353,14 @@ def test_a_logged_configuration_is_verified_against_its_digest(tmp_path):
     header = json.loads(lines[0])
     header["config"]["max_step"] = 0.2
     cfg.log.write_text(json.dumps(header) + "\n")
+    with pytest.raises(ValueError, match=r"run.jsonl:1: the record does not match"):
+        read_log(cfg.log)
     with pytest.raises(ConfigError, match="does not match its sha256"):
-        logged_config(read_log(cfg.log))
+        logged_config(read_log(cfg.log, verify=False))
     del header["config_sha256"]
     cfg.log.write_text(json.dumps(header) + "\n")
     with pytest.raises(ConfigError, match="no configuration digest"):
-        logged_config(read_log(cfg.log))
+        logged_config(read_log(cfg.log, verify=False))
 
 
 def test_tolerance_fraction_and_stale_timeout_reach_the_epics_machine(fake_epics):
