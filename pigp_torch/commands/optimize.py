@@ -37,8 +37,8 @@ from pigp_torch.commands.optimize_output import (
 
 #: Exit statuses of ``pigp optimize`` (also in ``--help`` and the README).
 EXIT_OK = 0
-EXIT_STOPPED = 1  # a safety rule, a machine error or another error stopped the run; restored
-EXIT_INPUT = 2  # invalid input (run file, log, arguments); nothing was moved
+EXIT_STOPPED = 1  # a safety rule, a machine error, a log write or another error; restored
+EXIT_INPUT = 2  # invalid input (run file, log, its hash chain, arguments); nothing was moved
 EXIT_NOT_RESTORED = 3  # the knobs were NOT restored (any cause): see the last setpoint
 EXIT_LOCKED = 4  # another run holds the run log or the machine; nothing was moved
 
@@ -51,14 +51,36 @@ DESCRIPTION = (
     "and restores to the knobs of its first start; --dry-run only prints the plan."
 )
 
-EXIT_HELP = """exit status:
+EXIT_HELP = """rules:
+  run file  checked as a whole before anything connects; numbers must be numbers (true,
+            false or a quoted "0.5" where a number belongs is refused, not converted);
+            max_step is required: a fraction of each knob's half-range of at most 1, or
+            {knob: value} of at most half that knob's range; anything larger is refused
+            unless the file says max_step: unlimited
+  run log   one JSON line per record, fsynced before the next step; every setting is
+            logged before it is written; each record carries a sha256 chained to the
+            previous one: --resume and pigp report refuse a log edited anywhere (exit 2,
+            naming the first line that does not match); a last line cut short by a crash is
+            dropped with one warning; a log of an older version (no chain) still resumes,
+            with a warning that it cannot be verified
+  log disk  a log write that fails (disk full, I/O error) stops the run: the knobs are
+            restored, one line says why, the summary is printed; a log whose header could
+            not be written is removed (nothing moved)
+  --dry-run writes nothing and moves nothing; an existing run log is not refused but named,
+            with what a run would do (refuse it: continue it with --resume)
+
+exit status:
   0    completed; the knobs restored (or set to the best point with restore: best)
-  1    stopped by a safety rule, a machine error or another error; knobs restored
-       (also: a PV that does not connect, nothing moved)
-  2    invalid input (run file, run log, arguments); nothing moved
-  3    the knobs were NOT restored (whatever ended the run): the last setpoint written
-       is printed and logged (end record: restored false, last_setpoint)
-  4    refused: another run holds the run log or the machine (lock file named)
+  1    stopped by a safety rule, a machine error, a failed run-log write or another error;
+       knobs restored (also: a PV that does not connect, or a run log that cannot be
+       started; nothing moved)
+  2    invalid input (run file, a folder or unreadable file given as one, an existing run
+       log, a run log that fails its hash chain, arguments); nothing moved
+  3    the knobs were NOT restored (whatever ended the run, a full log disk included): the
+       last setpoint written is printed and logged when the log can be written (end
+       record: restored false, last_setpoint)
+  4    refused: another run holds the run log or the machine (lock file named); nothing
+       moved
   129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored
 """
 

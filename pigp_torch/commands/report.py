@@ -6,9 +6,22 @@ from pathlib import Path
 
 
 def cmd_report(args) -> int:
-    from pigp_torch.report import write_report
+    """Draw the report; a run log is first read with its hash chain verified (an edited log is
+    refused, exit 2 naming the first line that does not match), and its warnings (a torn last
+    line, a log without a chain) are printed once, one plain line each."""
+    import sys
+    import warnings
 
-    png, page = write_report(args.target, args.output, noise=args.noise)
+    from pigp_torch.report import write_report
+    from pigp_torch.runlog import RunLogWarning, read_log
+
+    target = Path(args.target)
+    if target.is_file():
+        for note in read_log(target, warn=False).warnings:  # ValueError: refused (exit 2)
+            print(f"warning: {note}", file=sys.stderr)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RunLogWarning)  # printed above, once
+        png, page = write_report(target, args.output, noise=args.noise)
     print(f"wrote {png} and {page}")
     return 0
 
@@ -24,7 +37,10 @@ def register(sub, bench) -> None:
         "run's notices (resumes, discarded readings, knobs at a limit, how it ended). For a "
         "folder with runs.csv (pigp compare, pigp demo): the gain fraction per method (median, "
         "interquartile range) and the best noise-free value of every run. Writes OUT.png and "
-        "OUT.html (the PNG embedded; no external files).",
+        "OUT.html (the PNG embedded; no external files). A run log's hash chain is verified "
+        "first: a log edited anywhere is refused (exit 2, naming the first line that does not "
+        "match); a last line cut short by a crash is ignored with a warning; a log from an "
+        "older version (no chain) is drawn with a warning that it cannot be verified.",
     )
     p.add_argument("target", type=Path, help="run log (.jsonl) or pigp compare folder")
     p.add_argument(
