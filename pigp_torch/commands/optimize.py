@@ -11,13 +11,22 @@ seconds the step took: :class:`pigp_torch.progress.ProgressLine`), then a summar
 reading and where, and where the knobs were put back — or, if they could not be, the last
 setpoint written.
 
-``--resume LOG`` continues a logged run: the optimizer is rebuilt from the logged evaluations
-(:func:`pigp_torch.runlog.replay`), the knobs are compared with the initial knobs of the run's
-first start (the restore target) and the last commanded setting, and the run goes on up to the
-budget (which may be raised in the run file; nothing else may change). Without ``--config`` the
-configuration in the log header is used after its sha256 is verified, and its safety limits are
-printed. ``--dry-run`` validates, checks the log path and the locks, connects and prints the plan
-without moving anything or writing the log.
+``--resume LOG`` continues a logged run: the log's hash chain is verified (an edited log is
+refused, exit 2, naming the first line that does not match; a torn last line is dropped with one
+warning; a log of an older version without a chain resumes with a warning), the optimizer is
+rebuilt from the logged evaluations (:func:`pigp_torch.runlog.replay`), the knobs are compared
+with the initial knobs of the run's first start (the restore target) and the last commanded
+setting, and the run goes on up to the budget (which may be raised in the run file; nothing else
+may change). Without ``--config`` the configuration in the log header is used after its sha256 is
+verified, and its safety limits are printed. ``--dry-run`` validates, checks the log path and the
+locks, connects and prints the plan without moving anything or writing the log; an existing log
+is named, with what a run would do, instead of being refused.
+
+How the run ended is taken from the end record the loop handed to the run log
+(:attr:`pigp_torch.runlog.RunLog.end_record`), written or not: a full log disk stops the run
+(:class:`~pigp_torch.runlog.LogWriteError`, the knobs restored by the loop, one line, the
+summary) and never hides that the knobs were not restored (exit 3). Python warnings are printed
+as one plain line each while the command runs.
 """
 
 from __future__ import annotations
@@ -121,7 +130,8 @@ def register(sub, bench) -> None:
     p.add_argument(
         "--dry-run",
         action="store_true",
-        help="validate, connect and print the plan; move nothing, write nothing",
+        help="validate, connect and print the plan; move nothing, write nothing (an existing "
+        "run log is named with what a run would do, not refused)",
     )
     p.add_argument("--quiet", action="store_true", help="no line per evaluation")
     p.add_argument(

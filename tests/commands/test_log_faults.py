@@ -154,6 +154,26 @@ def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, 
     assert "the end record is NOT in it" in captured.out
 
 
+def test_a_completed_run_whose_end_record_cannot_be_written_exits_1(
+    tmp_path, capsys, monkeypatch, machines
+):
+    """Only the end record fails (the disk fills after the same run's other records, counted on
+    an identical run first): the knobs are restored, the summary says completed and that the
+    end record is not in the log; exit 1, not 0 (the log is incomplete)."""
+    assert cli.main(["optimize", "--config", write_config(tmp_path, "a.yaml", log="a.jsonl")]) == 0
+    n = len((tmp_path / "a.jsonl").read_text().splitlines())
+    capsys.readouterr()
+    monkeypatch.setattr(writer_module, "os", DiskFull(n - 1))
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "status: completed" in captured.out and "knobs restored to initial" in captured.out
+    assert "the end record is NOT in it" in captured.out and "run stopped:" in captured.err
+    assert torch.equal(machines[-1].get(), initial())
+    monkeypatch.setattr(writer_module, "os", os)
+    log = read_log(tmp_path / "run.jsonl")
+    assert log.last_end is None and log.n_evaluations == 12
+
+
 CHILD = (
     "import errno, os, sys; import pigp_torch.runlog.writer as w; n = int(sys.argv[1])\n"
     "class Full:\n"
