@@ -180,6 +180,7 @@ def test_an_edited_initial_knob_is_refused_and_nothing_is_put(ioc, probe, ring, 
     assert torch.equal(setpoints(ioc, probe), start) and put_stamps(ioc, probe) == stamps
 
 
+@pytest.mark.slow
 def test_a_torn_last_line_resumes_over_ca(ioc, probe, ring, tmp_path, capsys):
     """A log whose last line a crash cut in two resumes to the budget and restores the IOC to
     the first start's knobs exactly."""
