@@ -356,7 +356,6 @@ def _run(args, setup, records, log_lock) -> int:
         dashboard = Dashboard(log.path, port=args.dashboard_port)
         say(out, f"dashboard: {dashboard.url} (while the run goes)")
     code = EXIT_STOPPED
-    end = None
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
         code = EXIT_OK
@@ -376,10 +375,10 @@ def _run(args, setup, records, log_lock) -> int:
         if dashboard is not None:
             dashboard.close()
         with contextlib.suppress(Exception):  # the summary never hides the exit status
-            end = print_summary(log.path, out, log=log)
+            print_summary(log.path, out, log=log)
         with contextlib.suppress(OSError, ValueError):
             out.flush()
-    end = log.end_record if log.end_record is not None else end
+    end = log.end_record  # this session's, written or not (never an earlier session's)
     if end is not None and end.get("restored") is False:
         say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
         return EXIT_NOT_RESTORED

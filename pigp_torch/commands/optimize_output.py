@@ -66,10 +66,10 @@ def say(out, text: str = "") -> None:
 def print_summary(path: Path, out, log=None) -> dict | None:
     """Print how the run ended; returns the end record used.
 
-    The end record is ``log.end_record`` when a :class:`~pigp_torch.runlog.RunLog` is given
-    and its session reached one (written to the file or not: a full disk never hides whether
-    the knobs were restored), else the log's last end record. The evaluations are counted from
-    the file.
+    With a :class:`~pigp_torch.runlog.RunLog` (the session just run) the end record is
+    ``log.end_record``, written to the file or not (a full disk never hides whether the knobs
+    were restored); an earlier session's end record in the file is never taken for it. Without
+    one, the log's last end record is used. The evaluations are counted from the file.
     """
     from pigp_torch.runlog import read_log
 
@@ -78,12 +78,14 @@ def print_summary(path: Path, out, log=None) -> dict | None:
         records = read_log(path, verify=False, warn=False)
     except (OSError, ValueError) as err:
         say(out, f"the run log could not be read back: {err}")
-    end = log.end_record if log is not None and log.end_record is not None else None
-    if end is None and records is not None:
-        end = records.last_end
+    if log is not None:
+        end = log.end_record
+    else:
+        end = records.last_end if records is not None else None
     if end is None:
-        if log is not None and log.write_error:
-            say(out, f"run log: {path} (incomplete: a write failed: {log.write_error})")
+        if log is not None:
+            failed = f"; a write failed: {log.write_error}" if log.write_error else ""
+            say(out, f"run log: {path} (the session has no end record{failed})")
         return None
     names = records.knob_names if records is not None else list(log.header.get("knob_names"))
     say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
