@@ -495,3 +495,19 @@ def test_a_dry_run_next_to_an_existing_log_says_what_a_run_would_do(tmp_path, ca
     assert "a run with this file would be refused (exit 2)" in err
     assert log.read_bytes() == before
     assert cli.main(["optimize", "--config", config]) == 2
+
+
+def test_report_draws_a_torn_log_with_one_plain_warning(tmp_path, capsys):
+    """`pigp report` on a log whose last line a crash cut: drawn, exit 0, the torn line named in
+    one `warning:` line on stderr."""
+    log, _ = finished_run(tmp_path, budget=3)
+    text = log.read_text()
+    log.write_text(text[: len(text) - 30])
+    capsys.readouterr()
+    assert cli.main(["report", str(log), "-o", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err
+    assert [ln for ln in err.splitlines() if ln] == [
+        f"warning: {log}: line {len(text.splitlines())} was cut short by an interrupted write "
+        "(a crash); it is ignored"
+    ]
+    assert (tmp_path / "r.png").is_file()
