@@ -89,7 +89,9 @@ class PhysicsGenerator(Generator, StateOwner):
     n_starts: int = Field(8, ge=0, description="Sobol starts of the acquisition search")
     seed: int = Field(0, description="base seed of the acquisition search")
     noise: float | None = Field(None, gt=0, description="reading noise (default: the prior's)")
-    options: dict[str, Any] = Field(default_factory=dict, description="PhysicsModelBO options")
+    # a plain default, not default_factory: Badger lists a generator's defaults from
+    # ``Field.default`` (pydantic copies a mutable default for each instance)
+    options: dict[str, Any] = Field({}, description="PhysicsModelBO options")
 
     _optimizer: PhysicsModelBO | None = PrivateAttr(None)
     _rows_seen: int = PrivateAttr(0)

@@ -225,3 +225,15 @@ def test_a_generator_reads_its_prior_from_a_json_file(tmp_path):
     assert from_file.prior == PhysicsGenerator(vocs=vocs, prior=prior).prior
     with pytest.raises(pydantic.ValidationError, match=r"missing\.json"):
         PhysicsGenerator(vocs=vocs, prior=str(tmp_path / "missing.json"))
+
+
+def test_badger_can_list_the_generators_defaults():
+    """Badger's `badger generator pigp_physics` and its GUI show Xopt's
+    get_generator_defaults: plain values (no unset default-factory marker), prior required."""
+    from xopt.generators import get_generator_defaults
+
+    import pigp_torch.integrations.xopt_physics  # noqa: F401  (registration)
+
+    defaults = get_generator_defaults("pigp_physics")
+    assert defaults["prior"] is None and defaults["options"] == {}
+    assert defaults["beta"] == 4.0 and defaults["step_limit"] == 0.6
