@@ -19,8 +19,9 @@ inside the routine's life:
   ends. There :meth:`end_routine` is registered as a ``multiprocessing`` finalizer (these run
   when the process function returns or raises, before Python shuts its threads down, so the
   Channel Access client still works), and SIGTERM — the GUI's Stop when the process does not
-  stop within 0.1 s — raises Badger's own ``BadgerRunTerminated`` in the routine, which then ends
-  the same way.
+  stop within 0.1 s — raises Badger's own ``BadgerRunTerminated`` between evaluations (the
+  routine then ends the same way), or lets the evaluation under way finish, sets the knobs and
+  ends the process.
 
 A restore at interpreter exit (``atexit``) would not work: by then the thread pool of caproto's
 client refuses new work and the puts time out.
@@ -79,6 +80,8 @@ class SimRingEnvironment(environment.Environment):
     _last: torch.Tensor | None = PrivateAttr(None)  # the last setting written (A)
     _best: tuple[float, torch.Tensor] | None = PrivateAttr(None)  # (loss rate, knobs)
     _ending: bool = PrivateAttr(False)
+    _in_evaluation: bool = PrivateAttr(False)  # from set_variables to get_observables
+    _sigterm: bool = PrivateAttr(False)  # SIGTERM during an evaluation: stop after it
 
     # -- the machine ------------------------------------------------------------------------------
     def _machine(self):
@@ -157,10 +160,34 @@ class SimRingEnvironment(environment.Environment):
             logger.error("%s", err)
 
     def _on_sigterm(self, signum, frame) -> None:
-        if self._start is not None and not self._ending:
-            from badger.errors import BadgerRunTerminated
+        """SIGTERM in a routine's own process: Badger's own stop between evaluations; during
+        one, the setting or reading under way is finished first (Xopt's evaluator turns any
+        exception, even ``SystemExit``, into a failed measurement), then
+        :meth:`_stop_if_asked` ends the routine. Ignored once the routine is ending, so that the
+        restore is never interrupted."""
+        if self._start is None or self._ending:
+            return
+        if self._in_evaluation:
+            self._sigterm = True
+            return
+        from badger.errors import BadgerRunTerminated
 
-            raise BadgerRunTerminated(f"{ENVIRONMENT}: stopped by SIGTERM")
+        raise BadgerRunTerminated(f"{ENVIRONMENT}: stopped by SIGTERM")
+
+    def _stop_if_asked(self) -> None:
+        """After an evaluation interrupted by SIGTERM: set the knobs (``end_knobs``), then end
+        the process as SIGTERM asked (no exception can leave Xopt's evaluator cleanly)."""
+        if self._sigterm:
+            self._sigterm = False
+            try:
+                self.end_routine()
+            except Exception as err:
+                logger.error("%s", err)
+            finally:
+                self._exit_process(0)
+
+    #: how :meth:`_stop_if_asked` ends the routine's process (replaced in tests)
+    _exit_process: ClassVar = staticmethod(os._exit)
 
     def _end_with_this_process(self) -> None:
         """In a routine's own process (Badger's GUI): end the routine when the process ends."""
@@ -185,17 +212,28 @@ class SimRingEnvironment(environment.Environment):
         return {v: values[v] for v in variable_names}
 
     def set_variables(self, variable_inputs: dict[str, float]):
+        self._stop_if_asked()
         m = self._machine()
         if self._start is None:
             self.begin_routine()
-        now = dict(zip(SIM_KNOBS, m.setpoints().tolist(), strict=True))
-        now.update({k: float(v) for k, v in variable_inputs.items()})
-        x = torch.tensor([now[k] for k in SIM_KNOBS], dtype=DTYPE)
-        m.set(x)
+        self._in_evaluation = True
+        try:
+            now = dict(zip(SIM_KNOBS, m.setpoints().tolist(), strict=True))
+            now.update({k: float(v) for k, v in variable_inputs.items()})
+            x = torch.tensor([now[k] for k in SIM_KNOBS], dtype=DTYPE)
+            m.set(x)
+        except BaseException:
+            self._in_evaluation = False
+            raise
         self._last = x
 
     def get_observables(self, observable_names):
-        y = float(self._machine().read())
+        self._in_evaluation = True
+        try:
+            y = float(self._machine().read())
+        finally:
+            self._in_evaluation = False
         if self._last is not None and (self._best is None or y > self._best[0]):
             self._best = (y, self._last.clone())
+        self._stop_if_asked()
         return {k: y for k in observable_names if k == "loss_rate"}

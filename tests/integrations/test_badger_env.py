@@ -99,3 +99,28 @@ def test_end_knobs_is_validated():
 
     with pytest.raises(pydantic.ValidationError):
         SimRingEnvironment(end_knobs="last")
+
+
+def test_sigterm_during_an_evaluation_finishes_it_then_exits(monkeypatch):
+    """A SIGTERM while the knobs are being set does not break the setting: it completes, the
+    reading is taken, then the knobs are set back and only then the process is ended."""
+    env = _env(START)
+    env.reset_environment()
+    machine = env._epics
+    apply = machine._apply
+    exits = []
+
+    def apply_with_sigterm(x):
+        env._on_sigterm(15, None)  # arrives in the middle of the setting
+        apply(x)
+
+    def exit_process(code):
+        exits.append((code, machine.get().tolist()))
+
+    machine._apply = apply_with_sigterm
+    monkeypatch.setattr(SimRingEnvironment, "_exit_process", staticmethod(exit_process))
+    target = [v + 1.0 for v in START]
+    env.set_variables(dict(zip(SIM_KNOBS, target, strict=True)))
+    assert machine.get().tolist() == target and not exits
+    env.get_observables(["loss_rate"])
+    assert exits == [(0, START)]  # the knobs were back when the process was ended

@@ -6,11 +6,8 @@ a subprocess with a time limit. ``pigp`` and ``badger`` run as ``python -m pigp_
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
-import sysconfig
 import time
 from pathlib import Path
 
@@ -22,25 +19,8 @@ pytest.importorskip("caproto")
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _layered_venv(tmp_path) -> Path:
-    """A venv whose site-packages comes first and then the running environment's (its .pth
-    files processed, so editable installs work as in the parent)."""
-    venv = tmp_path / "venv"
-    subprocess.run(
-        [sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120
-    )
-    python = venv / "bin" / "python"
-    site = subprocess.run(
-        [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-        capture_output=True, text=True, check=True, timeout=60,
-    ).stdout.strip()  # fmt: skip
-    parent = sysconfig.get_paths()["purelib"]
-    Path(site, "_parent_env.pth").write_text(f"import site; site.addsitedir({parent!r})\n")
-    return python
-
-
 @pytest.mark.slow
-def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path):
+def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path, layered_python, fresh_home_env):
     """badger-setup on a fresh HOME; Badger's own CLI then lists pigp_physics and pigp_sim; a
     headless pigp_physics routine on pigp_sim against `pigp serve-sim` moves the knobs and ends
     with the IOC's setpoints exactly where they were."""
@@ -50,11 +30,8 @@ def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path):
     from pigp_torch.prior import PhysicsPrior
     from pigp_torch.testing.ca_env import client_environment, free_port, patched_environ
 
-    python = _layered_venv(tmp_path)
-    home = tmp_path / "home"
-    home.mkdir()
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("EPICS_", "XDG_"))}
-    env.update(HOME=str(home), QT_QPA_PLATFORM="offscreen", PYTHONPATH=str(REPO))
+    python, env = layered_python, fresh_home_env
+    home = Path(env["HOME"])
 
     def run(*args, timeout=180):
         proc = subprocess.run(
