@@ -204,8 +204,9 @@ def test_the_startup_file_makes_badger_list_pigp_physics(tmp_path):
 
 
 def test_a_generator_reads_its_prior_from_a_json_file(tmp_path):
-    """prior: PATH (what an operator types into Badger's generator settings) gives the same
-    stored prior as the object; a missing file is a validation error naming it."""
+    """prior or prior_file: PATH (what an operator types into Badger's generator settings)
+    gives the same stored prior as the object; the file wins over an empty prior; a missing
+    file is a validation error naming it, no prior at all one that says so."""
     import pydantic
     import torch
     from gest_api.vocs import VOCS
@@ -225,6 +226,11 @@ def test_a_generator_reads_its_prior_from_a_json_file(tmp_path):
     assert from_file.prior == PhysicsGenerator(vocs=vocs, prior=prior).prior
     with pytest.raises(pydantic.ValidationError, match=r"missing\.json"):
         PhysicsGenerator(vocs=vocs, prior=str(tmp_path / "missing.json"))
+    # Badger's settings editor sends prior_file and whatever it made of the prior's arrays
+    gui = PhysicsGenerator(vocs=vocs, prior={}, prior_file=str(tmp_path / "prior.json"))
+    assert gui.prior == from_file.prior and gui.prior_file == str(tmp_path / "prior.json")
+    with pytest.raises((pydantic.ValidationError, ValueError), match="no prior"):
+        PhysicsGenerator(vocs=vocs)
 
 
 def test_badger_can_list_the_generators_defaults():
