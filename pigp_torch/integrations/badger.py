@@ -9,7 +9,7 @@ How Badger 1.6 finds things, and what :func:`setup` (``pigp badger-setup``) does
   configuration is kept.
 * Environments are folders ``<plugin root>/environments/<name>`` (``configs.yaml`` and a module
   with an ``Environment`` class). :func:`setup` copies ``pigp_sim`` there; its class lives in
-  :mod:`pigp_torch.integrations.badger_env`, so upgrading pigp-torch upgrades it.
+  :mod:`pigp_torch.badger_plugins.sim_ring`, so upgrading pigp-torch upgrades it.
 * Generators are Xopt's registry as seen in Badger's own process: Badger 1.6 loads no generator
   plugins and neither Badger nor Xopt reads package entry points, so ``pigp_physics`` is listed
   only once :mod:`pigp_torch.integrations.xopt_physics` is imported there. :func:`setup` writes a
@@ -21,7 +21,7 @@ How Badger 1.6 finds things, and what :func:`setup` (``pigp badger-setup``) does
 
 Headless routines: :func:`run_routine` runs a Badger ``Routine`` through Badger's own loop
 (``badger.core.run_routine``) and ends it with the environment's :meth:`end_routine
-<pigp_torch.integrations.badger_env.SimRingEnvironment.end_routine>` (knobs restored), inside
+<pigp_torch.badger_plugins.sim_ring.SimRingEnvironment.end_routine>` (knobs restored), inside
 the routine's life, also on errors and Ctrl-C.
 """
 

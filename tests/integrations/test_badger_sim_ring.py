@@ -11,8 +11,8 @@ pytest.importorskip("badger")
 
 from badger.errors import BadgerRunTerminated
 
+from pigp_torch.badger_plugins.sim_ring import SimRingEnvironment
 from pigp_torch.integrations.badger import SIM_KNOBS
-from pigp_torch.integrations.badger_env import SimRingEnvironment
 from pigp_torch.machine.base import GuardedMachine
 
 D = len(SIM_KNOBS)
