@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import pandas as pd
-
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -49,16 +47,14 @@ def main(argv=None) -> int:
         },
         environment={"name": "pigp_sim", "ca_port": args.ca_port, "end_knobs": args.end_knobs},
     )
-    env = routine.environment
-    start = env.get_variables(routine.vocs.variable_names)
-    routine.initial_points = pd.DataFrame([start])  # start where the machine is
-    try:
+    try:  # starts where the machine is (no initial_points given)
         data = run_routine(routine, max_evaluations=args.evaluations, verbose=2)
     except KeyboardInterrupt:
         data = routine.data
         print("stopped by Ctrl-C", file=sys.stderr)
     best = data.loc[data["loss_rate"].idxmax()]
-    end = env.get_variables(routine.vocs.variable_names)
+    start = routine.initial_points.iloc[0].to_dict()
+    end = routine.environment.get_variables(routine.vocs.variable_names)
     print(f"{len(data)} readings; best loss rate {best['loss_rate']:.4f} mA/min")
     print(
         "knobs (A)   start -> end: "

@@ -216,11 +216,12 @@ def run_routine(
 ):
     """Run a Badger ``routine`` headless with Badger's own loop and end it properly.
 
-    Calls ``badger.core.run_routine`` (initial points, then generate / evaluate until the
-    ``active_callback`` says 2 = stop) and, when it returns or raises — the stop, an error,
-    Ctrl-C — the environment's ``end_routine()`` if it has one (``pigp_sim``: the knobs set back
-    to those found at the start, or to the best reading, see its ``end_knobs``), while the
-    process and its Channel Access client are still fully alive.
+    Calls ``badger.core.run_routine`` (the initial points — default: the variables' values now,
+    as Badger's "Add Current" — then generate / evaluate until the ``active_callback`` says
+    2 = stop) and, when it returns or raises — the stop, an error, Ctrl-C — the environment's
+    ``end_routine()`` if it has one (``pigp_sim``: the knobs set back to those found at the
+    start, or to the best reading, see its ``end_knobs``), while the process and its Channel
+    Access client are still fully alive.
 
     Args:
         routine: a ``badger.routine.Routine``.
@@ -249,6 +250,11 @@ def run_routine(
             data = routine.data
             return 2 if data is not None and len(data) >= n else 0
 
+    if routine.initial_points is None or not len(routine.initial_points):
+        import pandas as pd
+
+        names = routine.vocs.variable_names  # start where the machine is (Badger's "add current")
+        routine.initial_points = pd.DataFrame([routine.environment.get_variables(names)])
     try:
         badger_run_routine(
             routine,
