@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "bench_simulator",
     "optimize",
     "serve_sim",
+    "badger_setup",
     "bench_bo",
     "report",
 )

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 
 import pandas as pd
 import torch
-from pydantic import Field, PrivateAttr, field_validator
+from pydantic import Field, PrivateAttr, field_validator, model_validator
 
 try:
     from xopt.generator import Generator, StateOwner
@@ -59,8 +59,11 @@ class PhysicsGenerator(Generator, StateOwner):
     r"""Xopt generator of ``pigp-physics`` (see the module docstring).
 
     Attributes:
-        prior: the physics prior (a :class:`~pigp_torch.prior.PhysicsPrior` or its dict; stored
-            as the dict).
+        prior: the physics prior (a :class:`~pigp_torch.prior.PhysicsPrior`, its dict or the
+            path of its JSON file; stored as the dict).
+        prior_file: path of the prior's JSON file (default ``None``); when set, the prior is
+            read from it at every construction or reload (the field a form such as Badger's
+            settings editor shows; ``prior`` is then ignored).
         beta: UCB trade-off (default 4, :math:`\mu + 2\sigma`).
         step_limit: trust-box half-width, a fraction of each knob's half-range (default 0.6;
             ``None``: the whole box).
@@ -74,13 +77,18 @@ class PhysicsGenerator(Generator, StateOwner):
 
     Raises:
         ValueError / pydantic.ValidationError: a VOCS other than one MAXIMIZE objective over the
-            prior's knobs, bad option values, ``generate(n)`` with ``n != 1``.
+            prior's knobs, bad option values, no prior, ``generate(n)`` with ``n != 1``.
     """
 
     name: ClassVar[str] = "pigp_physics"
     supports_single_objective: bool = Field(True, frozen=True, exclude=True)
 
-    prior: dict[str, Any] = Field(description="PhysicsPrior.to_dict() of the physics prior")
+    prior: dict[str, Any] | None = Field(
+        None, description="PhysicsPrior.to_dict() of the physics prior (or give prior_file)"
+    )
+    prior_file: str | None = Field(
+        None, description="path of the prior's JSON file; when set, the prior is read from it"
+    )
     beta: float = Field(4.0, ge=0, description="UCB trade-off (4: mu + 2 sigma)")
     step_limit: float | None = Field(0.6, gt=0, description="trust box, fraction of half-range")
     max_travel_distances: float | list[float] | None = Field(
@@ -89,19 +97,33 @@ class PhysicsGenerator(Generator, StateOwner):
     n_starts: int = Field(8, ge=0, description="Sobol starts of the acquisition search")
     seed: int = Field(0, description="base seed of the acquisition search")
     noise: float | None = Field(None, gt=0, description="reading noise (default: the prior's)")
-    options: dict[str, Any] = Field(default_factory=dict, description="PhysicsModelBO options")
+    # a plain default, not default_factory: Badger lists a generator's defaults from
+    # ``Field.default`` (pydantic copies a mutable default for each instance)
+    options: dict[str, Any] = Field({}, description="PhysicsModelBO options")
 
     _optimizer: PhysicsModelBO | None = PrivateAttr(None)
     _rows_seen: int = PrivateAttr(0)
     _replayed: bool | None = PrivateAttr(None)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _prior_from_file(cls, data: Any) -> Any:
+        # a form (Badger's GUI) edits the path; the file, when named, gives the prior
+        if isinstance(data, dict) and data.get("prior_file"):
+            data = {**data, "prior": prior_as_dict(data["prior_file"])}
+        return data
+
     @field_validator("prior", mode="before")
     @classmethod
     def _validate_prior(cls, value: Any) -> dict[str, Any]:
+        if value is None or (isinstance(value, dict) and not value):
+            raise ValueError("no prior: give prior (a PhysicsPrior or its dict) or prior_file")
         return prior_as_dict(value)
 
     def model_post_init(self, context: Any) -> None:
         super().model_post_init(context)
+        if self.prior is None:
+            raise ValueError("no prior: give prior (a PhysicsPrior or its dict) or prior_file")
         self._check_vocs()
         self.optimizer  # build now: bad options fail at construction  # noqa: B018
 

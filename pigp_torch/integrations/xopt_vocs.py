@@ -9,6 +9,7 @@ as columns, plus ``xopt_runtime`` and ``xopt_error``; :func:`to_xopt_dataframe` 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -117,12 +118,17 @@ def single_objective(vocs: VOCS) -> tuple[str, bool]:
 
 
 def prior_as_dict(value: Any) -> dict[str, Any]:
-    """A prior field of a generator as plain, validated data (a :class:`PhysicsPrior` or its
-    dict form).
+    """A prior field of a generator as plain, validated data (a :class:`PhysicsPrior`, its
+    dict form, or the path of its JSON file, e.g. typed into Badger's generator settings).
 
     Raises:
-        ValueError: anything else, or a dict that is not a valid prior.
+        ValueError: anything else, or a dict or file that is not a valid prior.
     """
+    if isinstance(value, (str, os.PathLike)):
+        try:
+            return PhysicsPrior.load(value).to_dict()  # plain JSON, never a pickle
+        except OSError as err:
+            raise ValueError(f"cannot read the prior file {value}: {err}") from err
     if isinstance(value, PhysicsPrior):
         return value.to_dict()
     if isinstance(value, dict):
