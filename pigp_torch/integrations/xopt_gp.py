@@ -32,7 +32,6 @@ existing ``*.pt`` file when they are validated; build generators from trusted co
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
@@ -57,6 +56,7 @@ except ImportError as err:  # pragma: no cover - depends on the environment
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.integrations.xopt_vocs import prior_as_dict
+from pigp_torch.models._prior_mean import prior_mean_value
 from pigp_torch.models.physics_informed import KERNELS
 from pigp_torch.prior import PhysicsPrior
 
@@ -174,17 +174,7 @@ def physics_vocs_gp(
 
 
 def _mean_value(mean, prior: PhysicsPrior) -> float:
-    if isinstance(mean, str):
-        if mean not in ("f_inf", "zero"):
-            raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}')
-        return prior.f_inf if mean == "f_inf" else 0.0
-    try:
-        value = float(mean)
-    except (TypeError, ValueError):
-        raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}') from None
-    if not math.isfinite(value):
-        raise ValueError(f"mean must be finite, got {value}")
-    return value
+    return prior_mean_value(prior, mean)
 
 
 class PhysicsModelConstructor(ModelConstructor):

@@ -527,8 +527,13 @@ class InverseSqrtPeakModel:
         search calls this hundreds of times an ask on ``k x d`` arrays of a few starts, where
         each torch call costs more than its arithmetic. A test checks it against autograd of
         :meth:`predict`."""
+        out = self.predict_numpy(X.detach().numpy())
+        return tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in out)
+
+    def predict_numpy(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`predict_with_grad` on and to NumPy arrays: ``(mu, sd, dmu, dsd)`` at ``n x d``
+        settings ``x``."""
         st = self._prediction_state()
-        x = X.detach().numpy()
         pt = self._form_terms(st, x)
         beta, BD = st["beta"], pt["BD"]
         mu = st["background"] + pt["g"] ** -0.5
@@ -550,7 +555,7 @@ class InverseSqrtPeakModel:
         floor = var <= 1e-18
         sd = np.sqrt(np.maximum(var, 1e-18))
         dsd = np.where(floor[..., None], 0.0, dvar / (2 * sd)[..., None])
-        return tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in (mu, sd, dmu, dsd))
+        return mu, sd, dmu, dsd
 
     def _prediction_state(self) -> dict:
         """The fitted quantities of :meth:`predict_with_grad` as NumPy arrays, computed once per
@@ -634,8 +639,12 @@ class InverseSqrtPeakModel:
 
         (:meth:`_contract_grad_j`). Units: knob units squared (of the trace), per knob unit
         for the gradient."""
+        info, grad = self.centre_information_numpy(X.detach().numpy())
+        return torch.from_numpy(info), torch.from_numpy(np.ascontiguousarray(grad))
+
+    def centre_information_numpy(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`centre_information_with_grad` on and to NumPy arrays (``n``, ``n x d``)."""
         st = self._prediction_state()
-        x = X.detach().numpy()
         pt = self._form_terms(st, x)
         J, cov, d = pt["J"], st["cov"], self.dim
         V = J @ cov
@@ -644,7 +653,7 @@ class InverseSqrtPeakModel:
         info = (BVmu * V[..., :d]).sum(-1) / S
         A = 2.0 * (BVmu @ cov[:d, :]) - 2.0 * info[..., None] * V
         grad = self._contract_grad_j(st, pt, A) / S[..., None]
-        return torch.from_numpy(info), torch.from_numpy(np.ascontiguousarray(grad))
+        return info, grad
 
 
 def _cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:

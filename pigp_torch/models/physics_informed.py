@@ -2,8 +2,6 @@ r"""The physics-informed GP: kernel, mean and noise all fixed by a :class:`Physi
 
 from __future__ import annotations
 
-import math
-
 import torch
 from botorch import settings as botorch_settings
 from botorch.models import SingleTaskGP
@@ -12,6 +10,7 @@ from gpytorch.means import ConstantMean, Mean
 
 from pigp_torch.kernels import FullPrecisionRBFKernel, FullPrecisionRQKernel
 from pigp_torch.models._data import training_data
+from pigp_torch.models._prior_mean import prior_mean_value
 from pigp_torch.prior import PhysicsPrior
 
 #: Kernel families selectable by name.
@@ -71,19 +70,8 @@ def physics_informed_gp(
     mean_module = None
     if isinstance(mean, Mean):
         mean_module = mean
-    elif isinstance(mean, str):
-        if mean not in ("f_inf", "zero"):
-            raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}')
-        mean_value = prior.f_inf if mean == "f_inf" else 0.0
     else:
-        try:
-            mean_value = float(mean)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f'mean must be "f_inf", "zero", a float or a Mean, got {mean!r}'
-            ) from None
-        if not math.isfinite(mean_value):
-            raise ValueError(f"mean must be finite, got {mean_value}")
+        mean_value = prior_mean_value(prior, mean, what="a float or a Mean")
 
     if kernel == "rq":
         base = FullPrecisionRQKernel(prior.precision, alpha=rq_alpha)

@@ -17,7 +17,7 @@ def _params():
         yield pytest.param(*run, id=run_key(*run), marks=marks)
 
 
-@pytest.mark.parametrize("method, options, seed, budget", _params())
+@pytest.mark.parametrize("method, options, seed, budget", list(_params()))
 def test_trajectory_is_pinned(method, options, seed, budget):
     pinned = _PINNED[run_key(method, options, seed, budget)]
     got = trajectory(method, options, seed, budget)
