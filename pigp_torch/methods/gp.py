@@ -55,33 +55,6 @@ def build_pigp(ctx: RunContext, *, kernel: str = "rbf", mean="f_inf", **bo_optio
     return bayesopt(ctx, factory, bo_options)
 
 
-def machine_archive(
-    machine, size: int, *, spread: float = 0.2, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor]:
-    r"""``size`` noisy readings of a simulated ``machine`` near skews-off (an operating-point
-    archive).
-
-    Settings :math:`x_i \sim \mathcal N(0, (s\,h)^2)` per knob (:math:`h` the half-range,
-    :math:`s` = ``spread``) clipped to the bounds; readings :math:`f(x_i) + \epsilon_i`,
-    :math:`\epsilon_i \sim \mathcal N(0, \sigma_n^2)` with the machine's noise level, drawn from a
-    generator seeded by ``seed`` (the machine's own noise stream is not touched). ``machine``
-    needs ``bounds``, ``dim``, ``noise`` and ``true_value`` (a
-    :class:`~pigp_torch.machine.SimulatedMachine`).
-
-    Returns:
-        ``(X_a: size x d, Y_a: size)``.
-    """
-    if int(size) < 1:
-        raise ValueError(f"archive size must be >= 1, got {size}")
-    gen = torch.Generator().manual_seed(int(seed))
-    lower, upper = machine.bounds
-    center, half = (upper + lower) / 2, (upper - lower) / 2
-    Z = torch.randn(int(size), machine.dim, generator=gen, dtype=DTYPE)
-    X = torch.minimum(torch.maximum(center + spread * half * Z, lower), upper)
-    eps = torch.randn(int(size), generator=gen, dtype=DTYPE)
-    return X, machine.true_value(X) + machine.noise * eps
-
-
 def build_ml2(
     ctx: RunContext,
     *,
@@ -94,7 +67,7 @@ def build_ml2(
     r"""ML-II Bayesian optimization: diagonal ARD RBF with hyperparameters by marginal likelihood.
 
     With ``ctx.archive_size > 0`` (the benchmark) the hyperparameters are fitted first on an
-    archive of ``ctx.archive_size`` readings of the simulated machine (:func:`machine_archive`),
+    archive of ``ctx.archive_size`` readings of the machine (``ctx.archive``),
     then refitted on archive ∪ run data every ``refit_every`` asks (``0``: never refit). Without
     an archive (a live machine has none at hand) they are fitted on the run data every
     ``refit_every >= 1`` asks. Each refit is warm-started from the previous fit; between refits
@@ -114,9 +87,9 @@ def build_ml2(
     if ctx.archive_size > 0:
         if refit_every < 0:
             raise ValueError(f"refit_every must be >= 0, got {refit_every}")
-        archive = machine_archive(
-            ctx.machine, ctx.archive_size, spread=archive_spread, seed=ctx.seed
-        )
+        if ctx.archive is None:
+            raise ValueError("archive_size > 0 needs ctx.archive (readings of the machine)")
+        archive = ctx.archive(ctx.archive_size, spread=archive_spread, seed=ctx.seed)
     elif refit_every < 1:
         raise ValueError(f"refit_every must be >= 1 (no archive to fit once), got {refit_every}")
     if noise is None and not learn_noise:

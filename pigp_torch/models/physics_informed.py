@@ -52,8 +52,7 @@ def physics_informed_gp(
         prior: the physics prior.
         kernel: ``"rbf"`` (the paper's kernel) or ``"rq"`` (heavy-tailed variant).
         mean: ``"f_inf"`` (prior mean = ``prior.f_inf``, as in the paper), ``"zero"``, a float,
-            or a gpytorch ``Mean`` module used as is (e.g.
-            :class:`~pigp_torch.models.physics_mean.PhysicsMean`; its parameters get frozen).
+            or a gpytorch ``Mean`` module used as is (its parameters get frozen).
         rq_alpha: :math:`\alpha` of the RQ kernel (ignored for ``"rbf"``).
 
     Returns:
