@@ -93,52 +93,72 @@ def maximize_in_unit_box(
         ``(U, f, info)``: final points, their values and ``{"iterations", "evaluations"}``
         (accepted steps of the slowest start, batched calls of ``fun``).
     """
-    U = np.clip(np.array(U0, dtype=np.float64), 0.0, 1.0)
-    k, d = U.shape
-    f, g, H = fun(U, 2)
-    n_evals = 1
-    steps = np.zeros(k, dtype=int)
-    fails = np.zeros(k, dtype=int)
-    damping = np.zeros(k)
-    scale = np.ones(k)
-    active = np.ones(k, dtype=bool)
-    need_eig = np.ones(k, dtype=bool)
-    lam = np.ones((k, d))
-    V = np.zeros((k, d, d))
-    Vg = np.zeros((k, d))
-    free = np.ones((k, d), dtype=bool)
-    diag = np.arange(d)
+    s = _NewtonState(fun, U0)
     for _ in range(maxiter * (max_trials + 1)):
-        pg = np.clip(U + g, 0.0, 1.0) - U
-        active &= (np.abs(pg).max(1) > gtol) & (steps < maxiter) & (fails < max_trials)
-        if not active.any():
+        pg = np.clip(s.U + s.g, 0.0, 1.0) - s.U
+        s.active &= (np.abs(pg).max(1) > gtol) & (s.steps < maxiter) & (s.fails < max_trials)
+        if not s.active.any():
             break
-        idx = np.flatnonzero(active)
-        # eigen-decompose the reduced Hessian once per accepted step
-        e = idx[need_eig[idx]]
+        idx = np.flatnonzero(s.active)
+        e = idx[s.need_eig[idx]]
         if e.size:
-            # epsilon-binding set (Bertsekas): within eps of a bound and pushing against it
-            eps = np.minimum(1e-3, np.abs(pg[e]).max(1))[:, None]
-            fr = ~(((U[e] <= eps) & (g[e] < 0.0)) | ((U[e] >= 1.0 - eps) & (g[e] > 0.0)))
-            M = -H[e] * (fr[:, :, None] & fr[:, None, :])
-            M[:, diag, diag] += ~fr
-            w, Ve = np.linalg.eigh(M)
-            lam[e], V[e], free[e] = w, Ve, fr
-            Vg[e] = np.einsum("kji,kj->ki", Ve, g[e] * fr)
-            scale[e] = np.abs(w).max(1) + 1e-300
-            damping[e] = np.where(steps[e] == 0, 1e-3 * scale[e], damping[e])
-            need_eig[e] = False
+            s.eigen(e, pg)
+        s.trial_round(fun, idx, ftol)
+    return s.U, s.f, {"iterations": int(s.steps.max(initial=0)), "evaluations": s.n_evals}
+
+
+class _NewtonState:
+    """The per-start state of :func:`maximize_in_unit_box` and its two steps."""
+
+    def __init__(self, fun, U0: np.ndarray) -> None:
+        self.U = np.clip(np.array(U0, dtype=np.float64), 0.0, 1.0)
+        k, d = self.U.shape
+        self.f, self.g, self.H = fun(self.U, 2)
+        self.n_evals = 1
+        self.steps = np.zeros(k, dtype=int)
+        self.fails = np.zeros(k, dtype=int)
+        self.damping = np.zeros(k)
+        self.scale = np.ones(k)
+        self.active = np.ones(k, dtype=bool)
+        self.need_eig = np.ones(k, dtype=bool)
+        self.lam = np.ones((k, d))
+        self.V = np.zeros((k, d, d))
+        self.Vg = np.zeros((k, d))
+        self.free = np.ones((k, d), dtype=bool)
+        self.diag = np.arange(d)
+
+    def eigen(self, e: np.ndarray, pg: np.ndarray) -> None:
+        """Eigen-decompose the reduced Hessian of starts ``e`` (once per accepted step)."""
+        U, g, H, diag = self.U, self.g, self.H, self.diag
+        # epsilon-binding set (Bertsekas): within eps of a bound and pushing against it
+        eps = np.minimum(1e-3, np.abs(pg[e]).max(1))[:, None]
+        fr = ~(((U[e] <= eps) & (g[e] < 0.0)) | ((U[e] >= 1.0 - eps) & (g[e] > 0.0)))
+        M = -H[e] * (fr[:, :, None] & fr[:, None, :])
+        M[:, diag, diag] += ~fr
+        w, Ve = np.linalg.eigh(M)
+        self.lam[e], self.V[e], self.free[e] = w, Ve, fr
+        self.Vg[e] = np.einsum("kji,kj->ki", Ve, g[e] * fr)
+        self.scale[e] = np.abs(w).max(1) + 1e-300
+        self.damping[e] = np.where(self.steps[e] == 0, 1e-3 * self.scale[e], self.damping[e])
+        self.need_eig[e] = False
+
+    def trial_round(self, fun, idx: np.ndarray, ftol: float) -> None:
+        """Try the dampings of :data:`DAMPING_TRIALS` for the active starts ``idx`` at once and
+        accept or reject (Levenberg-Marquardt rule of :func:`maximize_in_unit_box`)."""
+        U, f, g, H, damping = self.U, self.f, self.g, self.H, self.damping
+        d = U.shape[1]
         # concave directions: damped Newton; convex ones (lam < 0): the damping alone. Several
         # dampings are tried at once (one batched evaluation instead of a round per rejection).
         a, m = idx.size, DAMPING_TRIALS.size
         denom = (
-            np.maximum(lam[idx], 0.0)[:, None, :]
+            np.maximum(self.lam[idx], 0.0)[:, None, :]
             + damping[idx, None, None] * DAMPING_TRIALS[None, :, None]
         )
-        p = np.einsum("kij,kmj->kmi", V[idx], Vg[idx][:, None, :] / denom) * free[idx][:, None]
+        p = np.einsum("kij,kmj->kmi", self.V[idx], self.Vg[idx][:, None, :] / denom)
+        p = p * self.free[idx][:, None]
         trial = np.clip(U[idx][:, None, :] + p, 0.0, 1.0)
         ft = fun(trial.reshape(a * m, d), 0).reshape(a, m)
-        n_evals += 1
+        self.n_evals += 1
         step = trial - U[idx][:, None, :]
         quad = np.einsum("kmi,kij,kmj->km", step, H[idx], step)
         predicted = np.einsum("ki,kmi->km", g[idx], step) + 0.5 * quad
@@ -148,30 +168,33 @@ def maximize_in_unit_box(
         best = np.argmax(np.where(okm, actual, -np.inf), axis=1)
         ok = okm[np.arange(a), best]
         acc, rej = idx[ok], idx[~ok]
-        damping[rej] = np.maximum(4.0 * DAMPING_TRIALS[-1] * damping[rej], 1e-8 * scale[rej])
-        fails[rej] += 1
+        damping[rej] = np.maximum(4.0 * DAMPING_TRIALS[-1] * damping[rej], 1e-8 * self.scale[rej])
+        self.fails[rej] += 1
         rho = rho[np.arange(a), best]
         actual = actual[np.arange(a), best]
         trial = trial[np.arange(a), best]
         ft = ft[np.arange(a), best]
         damping[acc] *= DAMPING_TRIALS[best[ok]]
         if acc.size:
-            r = rho[ok]
-            lower = 1e-12 * scale[acc]
-            damping[acc] = np.where(r > 0.75, np.maximum(damping[acc] / 4, lower), damping[acc])
-            damping[acc] = np.where(r < 0.25, 2.0 * damping[acc], damping[acc])
-            small_gain = actual[ok] <= ftol * (1.0 + np.abs(f[acc]))
-            U[acc] = trial[ok]
-            fails[acc] = 0
-            steps[acc] += 1
-            active[acc[small_gain]] = False
-            go = acc[~small_gain]
-            if go.size:
-                f[go], g[go], H[go] = fun(U[go], 2)
-                n_evals += 1
-                need_eig[go] = True
-            f[acc[small_gain]] = ft[ok][small_gain]
-    return U, f, {"iterations": int(steps.max(initial=0)), "evaluations": n_evals}
+            self._accept(fun, acc, rho[ok], actual[ok], trial[ok], ft[ok], ftol)
+
+    def _accept(self, fun, acc, r, gain, trial, ft, ftol: float) -> None:
+        """Move the starts ``acc`` to their accepted trials and adapt their damping."""
+        damping = self.damping
+        lower = 1e-12 * self.scale[acc]
+        damping[acc] = np.where(r > 0.75, np.maximum(damping[acc] / 4, lower), damping[acc])
+        damping[acc] = np.where(r < 0.25, 2.0 * damping[acc], damping[acc])
+        small_gain = gain <= ftol * (1.0 + np.abs(self.f[acc]))
+        self.U[acc] = trial
+        self.fails[acc] = 0
+        self.steps[acc] += 1
+        self.active[acc[small_gain]] = False
+        go = acc[~small_gain]
+        if go.size:
+            self.f[go], self.g[go], self.H[go] = fun(self.U[go], 2)
+            self.n_evals += 1
+            self.need_eig[go] = True
+        self.f[acc[small_gain]] = ft[small_gain]
 
 
 def _maximize_lbfgsb(fun, U0: np.ndarray, options: dict):
