@@ -149,7 +149,7 @@ def model_prior(
     ``source="exact"`` (default) takes the optimum and Hessian of the ring's own differentiable
     loss rate; ``"surrogate"`` follows the paper's chain: ``n_samples`` simulated readings of
     the model ring (:func:`~pigp_torch.simulation.sampling.generate_dataset`) train a
-    ``members``-network surrogate (:func:`~pigp_torch.surrogate.train_ensemble`, minutes), whose
+    ``members``-network surrogate (:func:`~pigp_torch.surrogate.train_ensemble`), whose
     optimum and autograd Hessian give the prior.
 
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
@@ -393,7 +393,7 @@ def run_benchmark(
     if int(center_ensemble) < 0:
         raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
     if not any(spec.uses_center_ensemble for spec in specs):
-        center_ensemble = 0  # no method reads it: skip the ~2 min of ensemble optima
+        center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
     if prior is None:
         shared = set(ensemble_seeds(center_ensemble)) & set(seeds) if center_ensemble else ()
         if shared:

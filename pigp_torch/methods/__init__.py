@@ -39,6 +39,7 @@ from pigp_torch.methods.registry import (
 )
 from pigp_torch.methods.xopt import TRAVEL_FRACTION, build_xopt_pigp, build_xopt_ucb
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
@@ -65,7 +66,7 @@ register(
         uses_center_ensemble=True,
         needs_prior=True,
         run_file=True,
-        forwards_to=(PhysicsModelBO, InverseSqrtPeakModel),
+        forwards_to=(PhysicsModelBO, PhysicsFormPosterior, InverseSqrtPeakModel),
         fixed=("prior", "seed", "center_cov", "shape"),
     )
 )

@@ -80,7 +80,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
             centre prior is then :math:`\mathcal N(\boldsymbol\mu_0, C_\mu)` with
             :math:`C_\mu = k\,C_e + (s_0 \mathbf h)^2 I`.
         center_cov_scale: :math:`k`, inflation of the ensemble covariance (the machines are
-            not the model rings; 3 by default, 1.5 stalled runs near the optimum).
+            not the model rings; default 3).
         center_floor_std: :math:`s_0`, isotropic floor in half-ranges, so that directions in
             which the ensemble hardly varies are not frozen.
         log_c_std: :math:`s_c`, prior std of :math:`\log c` around :math:`\log c_m`.
@@ -98,7 +98,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
             :math:`\mathbf v_k` of :math:`B` (eigenvalues :math:`\lambda_k`):
             :math:`B(\mathbf s) = \sum_k \lambda_k e^{s_k} \mathbf v_k \mathbf v_k^\top` with
             :math:`s_k \sim \mathcal N(0, s_B^2)` (``d`` more parameters); the machines' own
-            Hessians differ from the model ring's by 5-30 % along these directions. ``0``
+            Hessians differ from the model ring's mostly in scale along these directions. ``0``
             (default) keeps :math:`B` fixed.
         max_iter: L-BFGS-B iterations per start.
 

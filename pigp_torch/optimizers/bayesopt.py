@@ -90,7 +90,6 @@ class BayesOpt(BayesianOptimizer):
                          seed=seed)  # fmt: skip
         self.acquisition = str(acquisition).lower()
         self.beta = float(beta)
-        self.step_limit = region.step_limit
         self.trust_center = trust_center
         self.num_restarts, self.raw_samples = search.num_restarts, search.raw_samples
         self.options = search.options
@@ -100,7 +99,3 @@ class BayesOpt(BayesianOptimizer):
     def last_model(self) -> Model | None:
         """The model of the last ask (``None`` before the first)."""
         return self.parts.posterior.model
-
-    def trust_box(self, center: torch.Tensor) -> torch.Tensor:
-        """The ``2 x d`` search box around ``center`` (``d``)."""
-        return self.parts.region.trust_box(center)

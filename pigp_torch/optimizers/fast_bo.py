@@ -144,7 +144,6 @@ class FastBayesOpt(BayesianOptimizer):
         self.gp = gp
         self.acquisition = acq.name
         self.beta = float(beta)
-        self.step_limit = region.step_limit
         self.trust_center = trust_center
         self.num_restarts, self.raw_samples = search.num_restarts, search.raw_samples
         self.method, self.options = method, search.options
@@ -179,10 +178,6 @@ class FastBayesOpt(BayesianOptimizer):
         if self.method == "newton" and callable(mean):
             raise ValueError("method='newton' needs a constant prior mean; use 'lbfgsb' or 'auto'")
         self.gp.set_mean(_signed(mean, self.sign))
-
-    def trust_box(self, center: torch.Tensor) -> torch.Tensor:
-        r"""The ``2 x d`` search box around ``center`` (``d``), as :meth:`BayesOpt.trust_box`."""
-        return self.parts.region.trust_box(center)
 
     def posterior(self, X) -> tuple[torch.Tensor, torch.Tensor]:
         r"""Posterior mean and variance of the latent objective at ``X`` (``N x d`` or ``d``), in

@@ -113,9 +113,8 @@ class PhysicsModelBO(BayesianOptimizer):
             ``log_evidence_ratio``) to :attr:`notices` for the run log and the progress line.
         check_z: misfit threshold (default 4).
         evidence_margin: log-evidence lead that moves to a later stage (default 1.5 nats, odds
-            of about 4.5 to 1: the later stages nest the given model, so a lead needs readings
-            that the given one explains badly; a wrong scale of the shape leads by only 1-2
-            nats for tens of readings).
+            of :math:`e^{1.5} \approx 4.5` to 1: the later stages nest the given model, so a
+            lead needs readings that the given one explains badly).
         check_every: period of the evidence comparison in asks (default 3; it costs one more
             fit per later stage).
         evidence_from: readings from which the evidence comparison runs (default 10; ``None``:
@@ -129,7 +128,9 @@ class PhysicsModelBO(BayesianOptimizer):
             relative ones: ``shape_factor`` multiplies the given shape :math:`B` (the warm start
             keeps :math:`\beta B`), ``center_cov_scale_factor`` the given
             ``center_cov_scale``.
-        **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options
+        **posterior_options: ``center_prior``, ``shape_prior``, the prior check's options above
+            (:class:`~pigp_torch.models.physics_posterior.PhysicsFormPosterior`) and
+            :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
 
@@ -150,17 +151,9 @@ class PhysicsModelBO(BayesianOptimizer):
         n_starts: int = 8,
         info_every: int = 3,
         seed: int = 0,
-        center_prior: str = "auto",
-        shape_prior: str = "auto",
         travel_limit=None,
-        prior_check: bool = True,
-        check_z: float = 4.0,
-        evidence_margin: float = 1.5,
-        check_every: int = 3,
-        evidence_from: int | None = 10,
-        relax=None,
         maximize: bool = True,
-        **model_options,
+        **posterior_options,
     ) -> None:
         if not maximize:
             raise ValueError("PhysicsModelBO models a peak: it maximizes only")
@@ -168,15 +161,11 @@ class PhysicsModelBO(BayesianOptimizer):
         ucb = UCB(beta)
         region = TrustRegion(bounds, step_limit, "best_mean", travel_limit)
         search = MultiStartLBFGSB(n_starts, maxiter=200)
-        posterior = PhysicsFormPosterior(
-            prior, bounds, center_prior=center_prior, shape_prior=shape_prior,
-            prior_check=prior_check, check_z=check_z, evidence_margin=evidence_margin,
-            check_every=check_every, evidence_from=evidence_from, relax=relax, **model_options,
-        )  # fmt: skip
+        posterior = PhysicsFormPosterior(prior, bounds, **posterior_options)
         acquisition = Alternating(ucb, CentreInformation(), info_every)
         super().__init__(bounds, BOParts(posterior, acquisition, search, region), seed=seed)
         self.prior = prior
-        self.beta, self.step_limit = ucb.beta, region.step_limit
+        self.beta = ucb.beta
         self.n_starts, self.info_every = search.n_starts, acquisition.every
         self.travel_limit = region.travel_limit
 
@@ -191,10 +180,6 @@ class PhysicsModelBO(BayesianOptimizer):
         if name in _POSTERIOR_ATTRIBUTES:
             return getattr(self.parts.posterior, name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-
-    def trust_box(self, center: torch.Tensor) -> torch.Tensor:
-        """The ``2 x d`` trust box around ``center`` (same rule as :class:`BayesOpt`)."""
-        return self.parts.region.trust_box(center)
 
     def search_box(self, center: torch.Tensor) -> torch.Tensor:
         """The ``2 x d`` box the acquisition is maximized in: :meth:`trust_box` of ``center``,

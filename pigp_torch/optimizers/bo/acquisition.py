@@ -81,6 +81,12 @@ class _Analytic:
         raise NotImplementedError
 
 
+def _standardized(posterior, X: np.ndarray, order: int, best_f: float):
+    r"""The prediction at ``X``, its :math:`\sigma` and :math:`z = (\mu - y^*)/\sigma`."""
+    p = posterior.predict(X, order)
+    return p, p.std, (p.mean - best_f) / p.std
+
+
 class UCB(_Analytic):
     r""":math:`\mu + \sqrt\beta\,\sigma` (module docstring).
 
@@ -112,9 +118,7 @@ class EI(_Analytic):
     name = "ei"
 
     def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
-        p = posterior.predict(X, order)
-        mu, sigma = p.mean, p.std
-        z = (mu - best_f) / sigma
+        p, sigma, z = _standardized(posterior, X, order, best_f)
         pdf = np.exp(-0.5 * z**2 - _LOG_SQRT_2PI)
         cdf = scipy.special.ndtr(z)
         value = sigma * (pdf + z * cdf)
@@ -139,9 +143,7 @@ class LogEI(_Analytic):
     name = "logei"
 
     def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
-        p = posterior.predict(X, order)
-        mu, sigma = p.mean, p.std
-        z = (mu - best_f) / sigma
+        p, sigma, z = _standardized(posterior, X, order, best_f)
         log_h, ratio = _log_h(z)
         value = np.log(sigma) + log_h
         if order == 0:

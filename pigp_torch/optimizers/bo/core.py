@@ -58,7 +58,12 @@ class Search(Protocol):
 
 
 class Region(Protocol):
-    """Chooses the centre among the told points and the box of the next setting."""
+    """Chooses the centre among the told points and the box of the next setting; its trust
+    box has half-width ``step_limit`` around a centre."""
+
+    step_limit: float | None
+
+    def trust_box(self, center: torch.Tensor) -> torch.Tensor: ...
 
     def center(self, X: torch.Tensor, Y: torch.Tensor, posterior: Posterior) -> torch.Tensor: ...
 
@@ -95,6 +100,15 @@ class BayesianOptimizer(AskTellOptimizer):
         self.seed = int(seed)
         self.last_info: dict = {}
         self._tell_time = 0.0
+
+    @property
+    def step_limit(self) -> float | None:
+        """The region's trust-box half-width (a fraction of each knob's half-range)."""
+        return self.parts.region.step_limit
+
+    def trust_box(self, center: torch.Tensor) -> torch.Tensor:
+        """The region's ``2 x d`` trust box around ``center`` (``d``)."""
+        return self.parts.region.trust_box(center)
 
     def tell(self, x, y: float) -> None:
         """Record one measurement and pass it to the posterior."""

@@ -277,7 +277,7 @@ class NewtonSearch:
         U_starts += [to_unit(p)[None] for p in previous[::-1]]
         raw, raw_values, n_evals = np.empty((0, d)), np.empty(0), 0
         if self.raw_samples:
-            # uniform points from a fresh seeded generator: a scrambled SobolEngine costs ~1 ms
+            # uniform points from a fresh seeded generator (cheaper than a scrambled SobolEngine)
             raw = np.random.default_rng(seed).random((self.raw_samples, d))
             raw_values = fun(lo + raw * width, 0)
             n_evals += 1
