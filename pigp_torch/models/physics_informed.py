@@ -8,6 +8,7 @@ from botorch.models import SingleTaskGP
 from gpytorch.kernels import ScaleKernel
 from gpytorch.means import ConstantMean, Mean
 
+from pigp_torch._utils import DTYPE
 from pigp_torch.kernels import FullPrecisionRBFKernel, FullPrecisionRQKernel
 from pigp_torch.models._data import training_data
 from pigp_torch.models._prior_mean import prior_mean_value
@@ -66,35 +67,60 @@ def physics_informed_gp(
     X, Y = training_data(X, Y, prior.dim)
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
-    mean_module = None
-    if isinstance(mean, Mean):
-        mean_module = mean
-    else:
-        mean_value = prior_mean_value(prior, mean, what="a float or a Mean")
+    if not isinstance(mean, Mean):
+        mean = prior_mean_value(prior, mean, what="a float or a Mean")
+    return frozen_gp(X, Y, prior.precision, prior.amplitude, prior.noise, mean, kernel=kernel,
+                     rq_alpha=rq_alpha)  # fmt: skip
 
+
+def frozen_gp(
+    X: torch.Tensor,
+    Y: torch.Tensor,
+    precision: torch.Tensor,
+    amplitude: float,
+    noise: float,
+    mean,
+    *,
+    kernel: str = "rbf",
+    rq_alpha: float = 0.5,
+    input_transform=None,
+    outcome_transform=None,
+) -> SingleTaskGP:
+    r"""A frozen ``SingleTaskGP`` with kernel :math:`\sigma_f^2 k_P` (``kernel`` ``"rbf"`` or
+    ``"rq"`` with precision ``precision`` in the model's input coordinates), fixed noise
+    :math:`\sigma_n^2` and a constant prior ``mean`` (raw objective units) or a gpytorch ``Mean``
+    used as is. With an ``outcome_transform`` (``Standardize``: shift :math:`m`, scale
+    :math:`s`, fitted on ``Y`` at construction) the amplitude and mean are set in its units,
+    :math:`\sigma_f^2 / s^2` and :math:`(\text{mean} - m)/s`, so the posterior in raw units is
+    the same. ``X: n x d``, ``Y: n x 1`` float64 (validated by the caller); eval mode."""
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
     if kernel == "rq":
-        base = FullPrecisionRQKernel(prior.precision, alpha=rq_alpha)
+        base = FullPrecisionRQKernel(precision, alpha=rq_alpha)
     else:
-        base = FullPrecisionRBFKernel(prior.precision)
+        base = FullPrecisionRBFKernel(precision)
     covar_module = ScaleKernel(base).to(X)
-    # set from float64 tensors: gpytorch's setters would round Python floats through float32
-    covar_module.outputscale = torch.tensor(prior.amplitude, dtype=X.dtype)
-    if mean_module is None:
-        mean_module = ConstantMean().to(X)
-        mean_module.constant = torch.tensor(mean_value, dtype=X.dtype)
-    train_Yvar = torch.full_like(Y, prior.noise**2)
-
+    mean_module = mean if isinstance(mean, Mean) else ConstantMean().to(X)
     # raw knob units and raw objective values are intended: skip botorch's scaling warnings
     with botorch_settings.validate_input_scaling(False):
         model = SingleTaskGP(
             X,
             Y,
-            train_Yvar=train_Yvar,
+            train_Yvar=torch.full_like(Y, noise**2),  # Standardize divides it by s^2
             covar_module=covar_module,
             mean_module=mean_module,
-            outcome_transform=None,
-            input_transform=None,
+            outcome_transform=outcome_transform,
+            input_transform=input_transform,
         )
+    if outcome_transform is not None:  # fitted now: amplitude and mean in its units
+        shift = outcome_transform.means.reshape(()).to(DTYPE)
+        scale = outcome_transform.stdvs.reshape(()).to(DTYPE)
+    else:
+        shift, scale = torch.zeros((), dtype=DTYPE), torch.ones((), dtype=DTYPE)
+    # set from float64 tensors: gpytorch's setters would round Python floats through float32
+    covar_module.outputscale = torch.tensor(amplitude, dtype=DTYPE) / scale**2
+    if not isinstance(mean, Mean):
+        mean_module.constant = (torch.tensor(mean, dtype=DTYPE) - shift) / scale
     for p in model.parameters():
         p.requires_grad_(False)
     return model.eval()
