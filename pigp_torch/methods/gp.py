@@ -1,9 +1,6 @@
 r"""GP Bayesian optimization methods on :class:`~pigp_torch.optimizers.BayesOpt`: PI-GP and ML-II.
 
-Defaults (:data:`BO_DEFAULTS`): UCB with :math:`\beta = 4` (the authors' :math:`\mu + 2\sigma`),
-trust box of half-width ``step_limit = 0.3`` in knob units normalized to :math:`[-1, 1]`, centred
-on the best noisy reading; acquisition optimized with ``num_restarts = 4`` L-BFGS-B restarts from
-``raw_samples = 128`` Sobol points.
+Defaults: :data:`~pigp_torch.optimizers.bo.defaults.BO_DEFAULTS` (those of the classes too).
 """
 
 from __future__ import annotations
@@ -16,16 +13,7 @@ from pigp_torch._utils import DTYPE
 from pigp_torch.methods.registry import RunContext
 from pigp_torch.models import ml2_gp, physics_informed_gp
 from pigp_torch.optimizers import BayesOpt
-
-#: Acquisition-optimization defaults of every BO method.
-BO_DEFAULTS = {
-    "acquisition": "ucb",
-    "beta": 4.0,
-    "step_limit": 0.3,
-    "trust_center": "best_observed",
-    "num_restarts": 4,
-    "raw_samples": 128,
-}
+from pigp_torch.optimizers.bo.defaults import BO_DEFAULTS
 
 
 def bayesopt(ctx: RunContext, factory, options: dict) -> BayesOpt:

@@ -20,6 +20,7 @@ from pigp_torch._utils import check_bounds
 from pigp_torch.models.botorch_posterior import BoTorchPosterior
 from pigp_torch.optimizers.bo import BayesianOptimizer, BOParts, OptimizeAcqf, TrustRegion
 from pigp_torch.optimizers.bo.acquisition import ACQUISITIONS, botorch_analytic
+from pigp_torch.optimizers.bo.defaults import BO_DEFAULTS
 from pigp_torch.optimizers.bo.region import TRUST_CENTERS
 
 __all__ = ["ACQUISITIONS", "TRUST_CENTERS", "BayesOpt"]
@@ -50,6 +51,8 @@ class BayesOpt(BayesianOptimizer):
     ``last_info`` as :class:`~pigp_torch.optimizers.bo.BayesianOptimizer`'s; ``last_model`` is
     the model of the last ask.
 
+    Defaults: :data:`~pigp_torch.optimizers.bo.defaults.BO_DEFAULTS`.
+
     Args:
         bounds: ``2 x d`` knob bounds.
         model: factory ``(X: n x d, Y: n x 1) -> Model``.
@@ -71,13 +74,13 @@ class BayesOpt(BayesianOptimizer):
         bounds,
         model: Callable[[torch.Tensor, torch.Tensor], Model],
         *,
-        acquisition: str = "ucb",
-        beta: float = 4.0,
-        step_limit: float | None = 0.1,
-        trust_center: str = "best_observed",
+        acquisition: str = BO_DEFAULTS["acquisition"],
+        beta: float = BO_DEFAULTS["beta"],
+        step_limit: float | None = BO_DEFAULTS["step_limit"],
+        trust_center: str = BO_DEFAULTS["trust_center"],
         maximize: bool = True,
-        num_restarts: int = 10,
-        raw_samples: int = 256,
+        num_restarts: int = BO_DEFAULTS["num_restarts"],
+        raw_samples: int = BO_DEFAULTS["raw_samples"],
         seed: int = 0,
         options: dict | None = None,
     ) -> None:

@@ -23,6 +23,7 @@ from pigp_torch.models.incremental_gp import (
 )
 from pigp_torch.optimizers.bo import BayesianOptimizer, BOParts, NewtonSearch, TrustRegion
 from pigp_torch.optimizers.bo.acquisition import ACQUISITIONS, _log_h, analytic
+from pigp_torch.optimizers.bo.defaults import BO_DEFAULTS, NEWTON_SEARCH_DEFAULTS
 from pigp_torch.optimizers.bo.search import (
     DAMPING_TRIALS,
     NEWTON_MAX_DIM,
@@ -118,13 +119,13 @@ class FastBayesOpt(BayesianOptimizer):
         amplitude: float,
         noise: float,
         mean=0.0,
-        acquisition: str = "ucb",
-        beta: float = 4.0,
-        step_limit: float | None = 0.1,
-        trust_center: str = "best_observed",
+        acquisition: str = BO_DEFAULTS["acquisition"],
+        beta: float = BO_DEFAULTS["beta"],
+        step_limit: float | None = BO_DEFAULTS["step_limit"],
+        trust_center: str = BO_DEFAULTS["trust_center"],
         maximize: bool = True,
-        num_restarts: int = 10,
-        raw_samples: int = 256,
+        num_restarts: int = NEWTON_SEARCH_DEFAULTS["num_restarts"],
+        raw_samples: int = NEWTON_SEARCH_DEFAULTS["raw_samples"],
         seed: int = 0,
         method: str = "auto",
         options: dict | None = None,

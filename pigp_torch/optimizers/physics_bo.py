@@ -47,6 +47,7 @@ from pigp_torch.optimizers.bo import (
     MultiStartLBFGSB,
     TrustRegion,
 )
+from pigp_torch.optimizers.bo.defaults import PHYSICS_DEFAULTS
 from pigp_torch.prior import PhysicsPrior
 
 __all__ = [
@@ -146,10 +147,10 @@ class PhysicsModelBO(BayesianOptimizer):
         bounds,
         prior: PhysicsPrior,
         *,
-        beta: float = 4.0,
-        step_limit: float | None = 0.6,
-        n_starts: int = 8,
-        info_every: int = 3,
+        beta: float = PHYSICS_DEFAULTS["beta"],
+        step_limit: float | None = PHYSICS_DEFAULTS["step_limit"],
+        n_starts: int = PHYSICS_DEFAULTS["n_starts"],
+        info_every: int = PHYSICS_DEFAULTS["info_every"],
         seed: int = 0,
         travel_limit=None,
         maximize: bool = True,
