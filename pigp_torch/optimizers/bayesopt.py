@@ -19,7 +19,11 @@ from botorch.models.model import Model
 from pigp_torch._utils import check_bounds
 from pigp_torch.models.botorch_posterior import BoTorchPosterior
 from pigp_torch.optimizers.bo import BayesianOptimizer, BOParts, OptimizeAcqf, TrustRegion
-from pigp_torch.optimizers.bo.acquisition import ACQUISITIONS, botorch_analytic
+from pigp_torch.optimizers.bo.acquisition import (
+    ACQUISITIONS,
+    BoTorchAcquisition,
+    botorch_analytic,
+)
 from pigp_torch.optimizers.bo.defaults import BO_DEFAULTS
 from pigp_torch.optimizers.bo.region import TRUST_CENTERS
 
@@ -56,7 +60,9 @@ class BayesOpt(BayesianOptimizer):
     Args:
         bounds: ``2 x d`` knob bounds.
         model: factory ``(X: n x d, Y: n x 1) -> Model``.
-        acquisition: ``"ucb"``, ``"ei"`` or ``"logei"``.
+        acquisition: ``"ucb"``, ``"ei"``, ``"logei"``, or any BoTorch acquisition as a
+            callable ``(model, best_f) -> AcquisitionFunction`` (``best_f``: the best reading,
+            internal sign), e.g. ``lambda m, b: ProbabilityOfImprovement(m, best_f=b)``.
         beta: UCB trade-off :math:`\beta \ge 0`.
         step_limit: trust-box half-width as a fraction of each knob's half-range, or ``None``.
         trust_center: ``"best_observed"`` or ``"best_mean"``.
@@ -74,7 +80,7 @@ class BayesOpt(BayesianOptimizer):
         bounds,
         model: Callable[[torch.Tensor, torch.Tensor], Model],
         *,
-        acquisition: str = BO_DEFAULTS["acquisition"],
+        acquisition=BO_DEFAULTS["acquisition"],
         beta: float = BO_DEFAULTS["beta"],
         step_limit: float | None = BO_DEFAULTS["step_limit"],
         trust_center: str = BO_DEFAULTS["trust_center"],
@@ -86,12 +92,20 @@ class BayesOpt(BayesianOptimizer):
     ) -> None:
         bounds = check_bounds(bounds)
         posterior = BoTorchPosterior(model)
-        acq = botorch_analytic(acquisition, beta)
+        if isinstance(acquisition, str):
+            acq = botorch_analytic(acquisition, beta)
+        elif callable(acquisition):  # a BoTorch acquisition used as it is
+            acq = BoTorchAcquisition(acquisition)
+        else:
+            raise ValueError(
+                "acquisition must be 'ucb', 'ei', 'logei' or a callable (model, best_f) -> "
+                f"botorch AcquisitionFunction, got {acquisition!r}"
+            )
         region = TrustRegion(bounds, step_limit, trust_center)
         search = OptimizeAcqf(num_restarts, raw_samples, options)
         super().__init__(bounds, BOParts(posterior, acq, search, region), maximize=maximize,
                          seed=seed)  # fmt: skip
-        self.acquisition = str(acquisition).lower()
+        self.acquisition = acquisition.lower() if isinstance(acquisition, str) else acquisition
         self.beta = float(beta)
         self.trust_center = trust_center
         self.num_restarts, self.raw_samples = search.num_restarts, search.raw_samples

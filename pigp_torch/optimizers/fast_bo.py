@@ -95,7 +95,9 @@ class FastBayesOpt(BayesianOptimizer):
         mean: prior mean in objective units: a float or a differentiable callable
             ``(X: N x d) -> N`` (e.g. a gpytorch ``Mean``); change it later with
             :meth:`set_mean`.
-        acquisition: ``"ucb"``, ``"ei"`` or ``"logei"``.
+        acquisition: ``"ucb"``, ``"ei"``, ``"logei"`` or an acquisition part of the core
+            (:mod:`~pigp_torch.optimizers.bo.acquisition`, e.g. ``UCB(2.0)``; any object with
+            ``bind(posterior, best_f, step)``).
         beta: UCB trade-off :math:`\beta \ge 0` (``4``: the authors' :math:`\mu + 2\sigma`).
         step_limit: trust-box half-width as a fraction of each knob's half-range, or ``None``.
         trust_center: ``"best_observed"`` or ``"best_mean"``.
@@ -119,7 +121,7 @@ class FastBayesOpt(BayesianOptimizer):
         amplitude: float,
         noise: float,
         mean=0.0,
-        acquisition: str = BO_DEFAULTS["acquisition"],
+        acquisition=BO_DEFAULTS["acquisition"],
         beta: float = BO_DEFAULTS["beta"],
         step_limit: float | None = BO_DEFAULTS["step_limit"],
         trust_center: str = BO_DEFAULTS["trust_center"],
@@ -131,7 +133,7 @@ class FastBayesOpt(BayesianOptimizer):
         options: dict | None = None,
     ) -> None:
         bounds = check_bounds(bounds)
-        acq = analytic(acquisition, beta)
+        acq = acquisition if hasattr(acquisition, "bind") else analytic(acquisition, beta)
         region = TrustRegion(bounds, step_limit, trust_center)
         search = NewtonSearch(num_restarts, raw_samples, method, options)
         if method == "newton" and callable(mean):
@@ -143,7 +145,7 @@ class FastBayesOpt(BayesianOptimizer):
         parts = BOParts(IncrementalPosterior(gp), acq, search, region)
         super().__init__(bounds, parts, maximize=maximize, seed=seed)
         self.gp = gp
-        self.acquisition = acq.name
+        self.acquisition = getattr(acq, "name", type(acq).__name__)
         self.beta = float(beta)
         self.trust_center = trust_center
         self.num_restarts, self.raw_samples = search.num_restarts, search.raw_samples

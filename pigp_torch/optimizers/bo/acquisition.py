@@ -71,11 +71,19 @@ class _Analytic:
     """Shared :meth:`bind`: the acquisition as ``fun(X: N x d, order)`` on a posterior."""
 
     name = "analytic"
+    #: Highest derivative order the acquisition gives (the posterior may give fewer).
+    max_order = 2
 
     def bind(self, posterior, best_f: float, step: int) -> Callable:
-        """``fun(X, order)``: values (``order=0``) or ``(values, grads[, hessians])``."""
+        """``fun(X, order)``: values (``order=0``) or ``(values, grads[, hessians])``; its
+        ``max_order`` attribute is the highest order it gives."""
         best = float(best_f)
-        return lambda X, order=0: self.evaluate(posterior, X, order, best)
+
+        def fun(X, order=0):
+            return self.evaluate(posterior, X, order, best)
+
+        fun.max_order = min(self.max_order, posterior.max_order)
+        return fun
 
     def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
         raise NotImplementedError
@@ -173,6 +181,7 @@ class CentreInformation(_Analytic):
     orders 0 and 1."""
 
     name = "centre_information"
+    max_order = 1
 
     def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
         return posterior.centre_information(X, order)

@@ -14,7 +14,8 @@ The parts (:class:`BOParts`) are small protocols with several implementations ea
 * posterior (:class:`~pigp_torch.models.posterior.Posterior`): BoTorch model, incremental exact
   GP, online-fitted physics form with residual GP;
 * acquisition (:mod:`~pigp_torch.optimizers.bo.acquisition`): ``bind(posterior, best_f, step)``
-  returns what the search maximizes;
+  returns what the search maximizes (a ``fun(X, order)`` with a ``max_order`` attribute, 1 when
+  absent, or a BoTorch acquisition object);
 * search (:mod:`~pigp_torch.optimizers.bo.search`): ``maximize(objective, box, starts, seed,
   max_order) -> (x, value, info)``;
 * region (:class:`~pigp_torch.optimizers.bo.region.TrustRegion`): ``center(X, Y, posterior)``
@@ -144,9 +145,8 @@ class BayesianOptimizer(AskTellOptimizer):
             box = p.region.box(center, X[-1])
             objective = p.acquisition.bind(p.posterior, Y.max(), step)
             starts = [center, *p.posterior.extra_starts(box)]
-            x, value, info = p.search.maximize(
-                objective, box, starts, self.seed + step, p.posterior.max_order
-            )
+            order = min(p.posterior.max_order, getattr(objective, "max_order", 1))
+            x, value, info = p.search.maximize(objective, box, starts, self.seed + step, order)
             t2 = time.perf_counter()
         x = clamp_to_box(x, box)  # final guard against round-off
         self.last_info = {
