@@ -27,6 +27,9 @@ class BoTorchPosterior(PosteriorBase):
             sign).
     """
 
+    #: BoTorch draws from torch's global RNG: the core seeds a forked one per ask.
+    uses_torch_rng = True
+
     max_order = 1
 
     def __init__(self, factory: Callable[[torch.Tensor, torch.Tensor], Model]) -> None:

@@ -21,8 +21,10 @@ The parts (:class:`BOParts`) are small protocols with several implementations ea
 * region (:class:`~pigp_torch.optimizers.bo.region.TrustRegion`): ``center(X, Y, posterior)``
   and ``box(center, last)``.
 
-**Determinism.** Each ask seeds a forked torch RNG with ``seed + n_told`` and hands the same
-number to the search; the global RNG state is left untouched.
+**Determinism.** Each ask hands ``seed + n_told`` to the search; when the posterior or the
+search draws from torch's global RNG (``uses_torch_rng``, as BoTorch's model fits and
+``optimize_acqf`` do), the ask runs in a forked RNG seeded with the same number. The global RNG
+state is left untouched.
 
 After each ask, ``last_info`` holds ``acq_value``, ``center`` (``d``), ``trust_lower`` and
 ``trust_upper`` (``d``), ``fit_time_s`` (posterior update at the last tell and fit at this ask),
@@ -31,6 +33,7 @@ After each ask, ``last_info`` holds ``acq_value``, ``center`` (``d``), ``trust_l
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -134,8 +137,10 @@ class BayesianOptimizer(AskTellOptimizer):
         X, Y = self.train_data()
         p = self.parts
         step = self.n_told
-        with torch.random.fork_rng():
-            torch.manual_seed(self.seed + step)
+        forks = any(getattr(part, "uses_torch_rng", False) for part in (p.posterior, p.search))
+        with torch.random.fork_rng() if forks else contextlib.nullcontext():
+            if forks:
+                torch.manual_seed(self.seed + step)
             t0 = time.perf_counter()
             p.posterior.fit(X, Y)
             for notice in p.posterior.take_notices():

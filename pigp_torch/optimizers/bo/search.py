@@ -332,6 +332,9 @@ class OptimizeAcqf:
     """BoTorch's ``optimize_acqf`` (``num_restarts`` L-BFGS-B restarts from ``raw_samples``
     Sobol points, extra ``options``) on a BoTorch acquisition object in the box's unit cube."""
 
+    #: BoTorch draws from torch's global RNG: the core seeds a forked one per ask.
+    uses_torch_rng = True
+
     def __init__(self, num_restarts: int = 4, raw_samples: int = 128, options=None) -> None:
         if int(num_restarts) < 1 or int(raw_samples) < int(num_restarts):
             raise ValueError(
