@@ -24,7 +24,7 @@ kernel="rq"))``.
 """
 
 from pigp_torch.methods.direct import build_nelder_mead, build_rcds
-from pigp_torch.methods.fast import build_pigp_fast, fast_bo_options
+from pigp_torch.methods.fast import build_pigp_fast
 from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp
 from pigp_torch.methods.physics import build_pigp_physics
 from pigp_torch.methods.registry import (
@@ -115,7 +115,6 @@ __all__ = [
     "build_rcds",
     "build_xopt_pigp",
     "build_xopt_ucb",
-    "fast_bo_options",
     "method_options",
     "register",
     "resolve_methods",
