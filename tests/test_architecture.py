@@ -173,3 +173,53 @@ def test_the_import_finder_sees_every_form(tmp_path, source, expected):
 def test_the_cycle_finder_finds_a_cycle():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert _cycles(graph) == [["a", "b", "c"]]
+
+
+#: The Bayesian-optimization core: its parts and recipes (modules under these prefixes).
+BO_CORE = (
+    "pigp_torch.optimizers.bo",
+    "pigp_torch.optimizers.bayesopt",
+    "pigp_torch.optimizers.fast_bo",
+    "pigp_torch.optimizers.physics_bo",
+    "pigp_torch.optimizers.base",
+    "pigp_torch.models.posterior",
+    "pigp_torch.models.inverse_sqrt",
+    "pigp_torch.models._inverse_sqrt_numpy",
+    "pigp_torch.models._inverse_sqrt_fit",
+    "pigp_torch.models.incremental_gp",
+    "pigp_torch.models.physics_posterior",
+    "pigp_torch.models.botorch_posterior",
+    "pigp_torch.methods",
+)
+#: The recipes built on the core's parts; the parts never import them.
+BO_RECIPES = ("bayesopt", "fast_bo", "physics_bo")
+
+
+def _bo_core_modules() -> dict[str, Path]:
+    return {m: p for m, p in _modules().items() if m.startswith(BO_CORE)}
+
+
+def test_the_bo_core_parts_import_no_recipe():
+    """Inside the optimizers unit the core (``optimizers.bo``) sits below the recipes, and the
+    posteriors (``models``) know nothing of acquisitions, searches or regions."""
+    bad = []
+    for module, targets in _graph().items():
+        if module.startswith("pigp_torch.optimizers.bo"):
+            bad += [f"{module} -> {t}" for t in targets
+                    if t.rsplit(".", 1)[-1] in BO_RECIPES]  # fmt: skip
+    assert bad == []
+
+
+def test_bo_core_modules_and_functions_are_short():
+    """No module of the core over 400 lines, no function over 80 lines (docstring included)."""
+    long_modules, long_functions = [], []
+    for module, path in _bo_core_modules().items():
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > 400:
+            long_modules.append(f"{module}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > 80:
+                    long_functions.append(f"{module}.{node.name}: {n} lines")
+    assert long_modules == [] and long_functions == []

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.benchmark.methods import BO_DEFAULTS, RunContext, build_pigp_fast  # noqa: F401
+from pigp_torch.methods import BO_DEFAULTS, RunContext, build_pigp_fast  # noqa: F401
 from pigp_torch.models import ml2_gp, physics_informed_gp
 from pigp_torch.optimizers import BayesOpt
 from pigp_torch.optimizers.fast_bo import FastBayesOpt

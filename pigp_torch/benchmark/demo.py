@@ -13,8 +13,8 @@ from pathlib import Path
 import pandas as pd
 
 from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
-from pigp_torch.benchmark.methods import METHODS
 from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.methods import METHODS
 from pigp_torch.prior import prior_from_model
 from pigp_torch.progress import reporting_spec
 from pigp_torch.simulation import Spear3Coupling

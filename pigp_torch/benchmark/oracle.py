@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from pigp_torch.benchmark.methods import MethodSpec, RunContext
+from pigp_torch.methods import MethodSpec, RunContext
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.simulation.ensemble import ensemble_optima
 

@@ -29,6 +29,7 @@ serial loop.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 
@@ -37,9 +38,10 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE, default_dtype
-from pigp_torch.benchmark.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
+from pigp_torch.benchmark.archive import machine_archive
 from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.prior import PhysicsPrior, prior_from_model
 from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
 from pigp_torch.simulation.ring import RingCoupling
@@ -147,7 +149,7 @@ def model_prior(
     ``source="exact"`` (default) takes the optimum and Hessian of the ring's own differentiable
     loss rate; ``"surrogate"`` follows the paper's chain: ``n_samples`` simulated readings of
     the model ring (:func:`~pigp_torch.simulation.sampling.generate_dataset`) train a
-    ``members``-network surrogate (:func:`~pigp_torch.surrogate.train_ensemble`, minutes), whose
+    ``members``-network surrogate (:func:`~pigp_torch.surrogate.train_ensemble`), whose
     optimum and autograd Hessian give the prior.
 
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
@@ -261,6 +263,7 @@ def run_one(
             seed=run_seed(spec.name, machine_seed),
             noise=float(noise),
             archive_size=int(archive_size),
+            archive=functools.partial(machine_archive, machine),
         )
         optimizer = spec.build(ctx)
         x0 = torch.zeros(sim.dim, dtype=DTYPE)
@@ -310,8 +313,8 @@ def run_benchmark(
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
     Args:
-        methods: names from :data:`~pigp_torch.benchmark.methods.METHODS` and/or
-            :class:`~pigp_torch.benchmark.methods.MethodSpec` objects.
+        methods: names from :data:`~pigp_torch.methods.METHODS` and/or
+            :class:`~pigp_torch.methods.MethodSpec` objects.
         machine_seeds: error seeds of the machines (integers, distinct).
         model_seed: error seed of the model ring the prior is computed from; must not be a
             machine seed.
@@ -390,7 +393,7 @@ def run_benchmark(
     if int(center_ensemble) < 0:
         raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
     if not any(spec.uses_center_ensemble for spec in specs):
-        center_ensemble = 0  # no method reads it: skip the ~2 min of ensemble optima
+        center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
     if prior is None:
         shared = set(ensemble_seeds(center_ensemble)) & set(seeds) if center_ensemble else ()
         if shared:

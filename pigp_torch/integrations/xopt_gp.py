@@ -32,17 +32,13 @@ existing ``*.pt`` file when they are validated; build generators from trusted co
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
 import pandas as pd
 import torch
-from botorch import settings as botorch_settings
 from botorch.models import ModelListGP, SingleTaskGP
 from botorch.models.transforms import Normalize, Standardize
-from gpytorch.kernels import ScaleKernel
-from gpytorch.means import ConstantMean
 from pydantic import ConfigDict, Field, field_validator
 
 try:
@@ -57,7 +53,8 @@ except ImportError as err:  # pragma: no cover - depends on the environment
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.integrations.xopt_vocs import prior_as_dict
-from pigp_torch.models.physics_informed import KERNELS
+from pigp_torch.models._prior_mean import prior_mean_value
+from pigp_torch.models.physics_informed import KERNELS, frozen_gp
 from pigp_torch.prior import PhysicsPrior
 
 
@@ -117,7 +114,7 @@ def physics_vocs_gp(
         )
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
-    mean_value = _mean_value(mean, prior)
+    mean_value = prior_mean_value(prior, mean)
     X = torch.as_tensor(X, dtype=DTYPE)
     Y = torch.as_tensor(Y, dtype=DTYPE)
     d = prior.dim
@@ -145,46 +142,9 @@ def physics_vocs_gp(
         P = width[:, None] * P * width[None, :]
         input_transform = Normalize(d, bounds=B)
     outcome_transform = Standardize(m=1) if standardize_outputs else None
-
-    base = KERNELS[kernel](P, alpha=rq_alpha) if kernel == "rq" else KERNELS[kernel](P)
-    covar_module = ScaleKernel(base).to(X)
-    mean_module = ConstantMean().to(X)
-    with botorch_settings.validate_input_scaling(False):
-        model = SingleTaskGP(
-            X,
-            Y,
-            train_Yvar=torch.full_like(Y, prior.noise**2),  # Standardize divides it by s^2
-            covar_module=covar_module,
-            mean_module=mean_module,
-            input_transform=input_transform,
-            outcome_transform=outcome_transform,
-        )
-    # the transforms are fitted now: map amplitude and mean into the model's outcome units.
-    if outcome_transform is not None:
-        shift = outcome_transform.means.reshape(()).to(DTYPE)
-        scale = outcome_transform.stdvs.reshape(()).to(DTYPE)
-    else:
-        shift, scale = torch.zeros((), dtype=DTYPE), torch.ones((), dtype=DTYPE)
-    # set from float64 tensors: gpytorch's setters would round Python floats through float32
-    covar_module.outputscale = torch.tensor(prior.amplitude, dtype=DTYPE) / scale**2
-    mean_module.constant = (torch.tensor(mean_value, dtype=DTYPE) - shift) / scale
-    for p in model.parameters():
-        p.requires_grad_(False)
-    return model.eval()
-
-
-def _mean_value(mean, prior: PhysicsPrior) -> float:
-    if isinstance(mean, str):
-        if mean not in ("f_inf", "zero"):
-            raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}')
-        return prior.f_inf if mean == "f_inf" else 0.0
-    try:
-        value = float(mean)
-    except (TypeError, ValueError):
-        raise ValueError(f'mean must be "f_inf", "zero" or a float, got {mean!r}') from None
-    if not math.isfinite(value):
-        raise ValueError(f"mean must be finite, got {value}")
-    return value
+    return frozen_gp(X, Y, P, prior.amplitude, prior.noise, mean_value, kernel=kernel,
+                     rq_alpha=rq_alpha, input_transform=input_transform,
+                     outcome_transform=outcome_transform)  # fmt: skip
 
 
 class PhysicsModelConstructor(ModelConstructor):

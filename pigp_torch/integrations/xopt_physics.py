@@ -72,7 +72,7 @@ class PhysicsGenerator(Generator, StateOwner):
         n_starts: Sobol starts of the acquisition search (default 8).
         seed: base seed (default 0; the benchmark derives one per run).
         noise: reading noise :math:`\sigma_n` in objective units (default: the prior's).
-        options: further :class:`PhysicsModelBO` options (``exploit_every``, ``adapt_box``,
+        options: further :class:`PhysicsModelBO` options (``info_every``, ``travel_limit``,
             ``center_prior``, ``shape_prior``, model options such as ``residual_std``).
 
     Raises:

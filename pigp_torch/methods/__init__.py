@@ -15,11 +15,17 @@ one module with its builder and one :func:`register` call below.
 * ``nelder-mead``, ``rcds``: direct methods (:mod:`~pigp_torch.methods.direct`).
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
+* benchmark variants (not in run files): ``pigp-zero-mean``, ``pigp`` with a zero prior mean
+  (Fig. 2c); ``pigp-physics-box``, ``pigp-physics`` with what the model ring alone gives (its own
+  shape and the isotropic box prior on the centre, 1 half-range; no error ensemble).
+
+A further variant is one entry: ``register(METHODS["pigp"].with_options(name="pigp-rq",
+kernel="rq"))``.
 """
 
 from pigp_torch.methods.direct import build_nelder_mead, build_rcds
-from pigp_torch.methods.fast import build_pigp_fast, fast_bo_options
-from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp, machine_archive
+from pigp_torch.methods.fast import build_pigp_fast
+from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp
 from pigp_torch.methods.physics import build_pigp_physics
 from pigp_torch.methods.registry import (
     DEFAULT_BUDGETS,
@@ -33,6 +39,7 @@ from pigp_torch.methods.registry import (
 )
 from pigp_torch.methods.xopt import TRAVEL_FRACTION, build_xopt_pigp, build_xopt_ucb
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
@@ -59,7 +66,7 @@ register(
         uses_center_ensemble=True,
         needs_prior=True,
         run_file=True,
-        forwards_to=(PhysicsModelBO, InverseSqrtPeakModel),
+        forwards_to=(PhysicsModelBO, PhysicsFormPosterior, InverseSqrtPeakModel),
         fixed=("prior", "seed", "center_cov", "shape"),
     )
 )
@@ -78,6 +85,16 @@ register(
 )
 register(MethodSpec("rcds", build_rcds, "direct", run_file=True))
 register(MethodSpec("xopt-ucb", build_xopt_ucb, "gp"))
+# benchmark variants (not in run files)
+register(MethodSpec("pigp-zero-mean", build_pigp, "gp", {"mean": "zero"}))
+register(
+    MethodSpec(
+        "pigp-physics-box",
+        build_pigp_physics,
+        "gp",
+        {"center_prior": "box", "shape_prior": "model"},
+    )
+)
 register(
     MethodSpec("xopt-ucb-travel", build_xopt_ucb, "gp", {"max_travel_distances": TRAVEL_FRACTION})
 )
@@ -98,8 +115,6 @@ __all__ = [
     "build_rcds",
     "build_xopt_pigp",
     "build_xopt_ucb",
-    "fast_bo_options",
-    "machine_archive",
     "method_options",
     "register",
     "resolve_methods",

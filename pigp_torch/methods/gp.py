@@ -1,9 +1,6 @@
 r"""GP Bayesian optimization methods on :class:`~pigp_torch.optimizers.BayesOpt`: PI-GP and ML-II.
 
-Defaults (:data:`BO_DEFAULTS`): UCB with :math:`\beta = 4` (the authors' :math:`\mu + 2\sigma`),
-trust box of half-width ``step_limit = 0.3`` in knob units normalized to :math:`[-1, 1]`, centred
-on the best noisy reading; acquisition optimized with ``num_restarts = 4`` L-BFGS-B restarts from
-``raw_samples = 128`` Sobol points.
+Defaults: :data:`~pigp_torch.optimizers.bo.defaults.BO_DEFAULTS` (those of the classes too).
 """
 
 from __future__ import annotations
@@ -16,16 +13,7 @@ from pigp_torch._utils import DTYPE
 from pigp_torch.methods.registry import RunContext
 from pigp_torch.models import ml2_gp, physics_informed_gp
 from pigp_torch.optimizers import BayesOpt
-
-#: Acquisition-optimization defaults of every BO method.
-BO_DEFAULTS = {
-    "acquisition": "ucb",
-    "beta": 4.0,
-    "step_limit": 0.3,
-    "trust_center": "best_observed",
-    "num_restarts": 4,
-    "raw_samples": 128,
-}
+from pigp_torch.optimizers.bo.defaults import BO_DEFAULTS
 
 
 def bayesopt(ctx: RunContext, factory, options: dict) -> BayesOpt:
@@ -55,33 +43,6 @@ def build_pigp(ctx: RunContext, *, kernel: str = "rbf", mean="f_inf", **bo_optio
     return bayesopt(ctx, factory, bo_options)
 
 
-def machine_archive(
-    machine, size: int, *, spread: float = 0.2, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor]:
-    r"""``size`` noisy readings of a simulated ``machine`` near skews-off (an operating-point
-    archive).
-
-    Settings :math:`x_i \sim \mathcal N(0, (s\,h)^2)` per knob (:math:`h` the half-range,
-    :math:`s` = ``spread``) clipped to the bounds; readings :math:`f(x_i) + \epsilon_i`,
-    :math:`\epsilon_i \sim \mathcal N(0, \sigma_n^2)` with the machine's noise level, drawn from a
-    generator seeded by ``seed`` (the machine's own noise stream is not touched). ``machine``
-    needs ``bounds``, ``dim``, ``noise`` and ``true_value`` (a
-    :class:`~pigp_torch.machine.SimulatedMachine`).
-
-    Returns:
-        ``(X_a: size x d, Y_a: size)``.
-    """
-    if int(size) < 1:
-        raise ValueError(f"archive size must be >= 1, got {size}")
-    gen = torch.Generator().manual_seed(int(seed))
-    lower, upper = machine.bounds
-    center, half = (upper + lower) / 2, (upper - lower) / 2
-    Z = torch.randn(int(size), machine.dim, generator=gen, dtype=DTYPE)
-    X = torch.minimum(torch.maximum(center + spread * half * Z, lower), upper)
-    eps = torch.randn(int(size), generator=gen, dtype=DTYPE)
-    return X, machine.true_value(X) + machine.noise * eps
-
-
 def build_ml2(
     ctx: RunContext,
     *,
@@ -94,7 +55,7 @@ def build_ml2(
     r"""ML-II Bayesian optimization: diagonal ARD RBF with hyperparameters by marginal likelihood.
 
     With ``ctx.archive_size > 0`` (the benchmark) the hyperparameters are fitted first on an
-    archive of ``ctx.archive_size`` readings of the simulated machine (:func:`machine_archive`),
+    archive of ``ctx.archive_size`` readings of the machine (``ctx.archive``),
     then refitted on archive ∪ run data every ``refit_every`` asks (``0``: never refit). Without
     an archive (a live machine has none at hand) they are fitted on the run data every
     ``refit_every >= 1`` asks. Each refit is warm-started from the previous fit; between refits
@@ -114,9 +75,9 @@ def build_ml2(
     if ctx.archive_size > 0:
         if refit_every < 0:
             raise ValueError(f"refit_every must be >= 0, got {refit_every}")
-        archive = machine_archive(
-            ctx.machine, ctx.archive_size, spread=archive_spread, seed=ctx.seed
-        )
+        if ctx.archive is None:
+            raise ValueError("archive_size > 0 needs ctx.archive (readings of the machine)")
+        archive = ctx.archive(ctx.archive_size, spread=archive_spread, seed=ctx.seed)
     elif refit_every < 1:
         raise ValueError(f"refit_every must be >= 1 (no archive to fit once), got {refit_every}")
     if noise is None and not learn_noise:

@@ -41,8 +41,12 @@ class RunContext:
         seed: the run's seed.
         noise: the measurement noise standard deviation (objective units, mA/min); ``None``:
             unknown (each optimizer's own default is kept).
-        archive_size: number of archive readings for data-informed methods (``0``: no archive,
-            as on a live machine).
+        archive_size: number of archive readings for data-informed methods (``0``, default: no
+            archive, as on a live machine).
+        archive: ``(size, *, spread, seed) -> (X_a: size x d, Y_a: size)``, readings of the
+            machine near its operating point (the benchmark gives
+            :func:`~pigp_torch.benchmark.archive.machine_archive` of its simulated machine);
+            ``None``: none.
         maximize: maximize (default) or minimize the objective.
         knob_bounds: ``2 x d`` bounds; ``None``: the machine's.
     """
@@ -51,7 +55,8 @@ class RunContext:
     prior: Any = None
     seed: int = 0
     noise: float | None = 0.04
-    archive_size: int = 300
+    archive_size: int = 0
+    archive: Callable[..., tuple] | None = None
     maximize: bool = True
     knob_bounds: torch.Tensor | None = None
 

@@ -1,14 +1,19 @@
-"""Ask/tell optimizers: Bayesian optimization, Nelder–Mead, RCDS; ``OPTIMIZERS`` by name."""
+"""Ask/tell optimizers: the Bayesian-optimization core and its recipes, Nelder–Mead, RCDS.
+
+The methods by name (run files, the benchmark, the CLI) are the one registry
+:data:`pigp_torch.methods.METHODS`.
+"""
 
 from pigp_torch.optimizers.base import AskTellOptimizer, check_bounds
 from pigp_torch.optimizers.bayesopt import BayesOpt
+from pigp_torch.optimizers.bo import BayesianOptimizer, BOParts
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.nelder_mead import NelderMead
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.optimizers.rcds import RCDS
 
-#: The generic optimizer classes by their ``name`` (the methods that run files, the benchmark and
-#: the CLI name are in :mod:`pigp_torch.methods`).
+#: Deprecated (the loop's safety tests still read it): three optimizer classes by their ``name``;
+#: use :data:`pigp_torch.methods.METHODS`.
 OPTIMIZERS = {
     BayesOpt.name: BayesOpt,
     NelderMead.name: NelderMead,
@@ -19,7 +24,9 @@ __all__ = [
     "OPTIMIZERS",
     "RCDS",
     "AskTellOptimizer",
+    "BOParts",
     "BayesOpt",
+    "BayesianOptimizer",
     "FastBayesOpt",
     "NelderMead",
     "PhysicsModelBO",

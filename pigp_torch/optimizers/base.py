@@ -17,47 +17,6 @@ import torch
 from pigp_torch._utils import DTYPE, check_bounds
 
 
-def check_ucb_options(beta, step_limit) -> tuple[float, float | None]:
-    """Validate the UCB trade-off ``beta`` (finite, >= 0) and the trust-box ``step_limit``
-    (positive and finite, or ``None``); return them as floats."""
-    if not (float(beta) >= 0.0 and float(beta) < float("inf")):
-        raise ValueError(f"beta must be finite and >= 0, got {beta}")
-    if step_limit is not None and not (0.0 < float(step_limit) < float("inf")):
-        raise ValueError(f"step_limit must be positive and finite (or None), got {step_limit}")
-    return float(beta), None if step_limit is None else float(step_limit)
-
-
-def check_search_options(
-    trust_center: str, centers, num_restarts: int, raw_samples: int, min_restarts: int = 1
-) -> None:
-    """Validate a trust-box centre rule (one of ``centers``) and the acquisition-search counts
-    (``num_restarts >= min_restarts`` and ``raw_samples >= num_restarts``)."""
-    if trust_center not in centers:
-        raise ValueError(f"trust_center must be one of {centers}, got {trust_center!r}")
-    if int(num_restarts) < min_restarts or int(raw_samples) < int(num_restarts):
-        raise ValueError(
-            f"need num_restarts >= {min_restarts} and raw_samples >= num_restarts; "
-            f"got {num_restarts}, {raw_samples}"
-        )
-
-
-def trust_box(bounds: torch.Tensor, center: torch.Tensor, step_limit: float | None) -> torch.Tensor:
-    r"""The ``2 x d`` search box of half-width ``step_limit`` (a fraction of each knob's
-    half-range) around ``center`` (clamped into ``bounds``), intersected with ``bounds``.
-
-    .. math:: \max\!\big(\ell,\; c - s\,\tfrac{h - \ell}{2}\big) \le x \le
-              \min\!\big(h,\; c + s\,\tfrac{h - \ell}{2}\big)
-
-    ``step_limit=None`` gives the whole box.
-    """
-    lower, upper = bounds
-    if step_limit is None:
-        return bounds.clone()
-    c = torch.minimum(torch.maximum(center, lower), upper)
-    half = step_limit * (upper - lower) / 2
-    return torch.stack([torch.maximum(lower, c - half), torch.minimum(upper, c + half)])
-
-
 class AskTellOptimizer:
     r"""Base class: stores bounds, the direction of optimization and the evaluation history.
 

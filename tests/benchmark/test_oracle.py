@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from pigp_torch.benchmark.methods import RunContext
 from pigp_torch.benchmark.oracle import ORACLE, oracle_prior
 from pigp_torch.benchmark.protocol import build_machine
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.methods import RunContext
 from pigp_torch.simulation.ensemble import ensemble_optima
 from pigp_torch.simulation.spec import SPEAR3
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from pigp_torch.benchmark import METHODS, machine_archive, machine_optimum, run_benchmark, run_seed
-from pigp_torch.benchmark.methods import MethodSpec, resolve_methods
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.methods import MethodSpec, resolve_methods
 from pigp_torch.simulation import Spear3Coupling
 from tests.benchmark.conftest import BUDGETS, MODEL_SEED, OPTIMUM_STARTS, SEEDS, tiny_methods
 

@@ -126,22 +126,16 @@ def test_end_to_end_physics_informed_bayesopt(ioc, probe, ring):
     """PI-GP BO over CA improves the loss rate in 15 evaluations; the knobs end where they began.
 
     A plumbing test, not a benchmark: the prior is built from the exact Hessian of the served
-    ring's own fast model, and the method is ``pigp-physics-mean`` with its mean centred on that
-    prior's optimum (cheap acquisition settings). Offline (``SimulatedMachine``, BO seeds 0, 1)
-    this raised the true loss rate from 0.50 to 1.56-1.60 mA/min in 15 evaluations; with the
-    honest benchmark prior (model ring seed 0) the gain was 0.04-0.40 mA/min, too variable for
-    a test at 15 evaluations.
+    ring's own fast model, and the method is ``pigp-physics`` (the physics form fitted online,
+    with that prior's shape; cheap acquisition settings).
     """
-    from pigp_torch.benchmark import METHODS
-    from pigp_torch.benchmark.methods import RunContext
+    from pigp_torch.methods import METHODS, RunContext
     from pigp_torch.prior import prior_from_model
 
     prior = prior_from_model(
         ring.loss_rate, ring.bounds, f_inf=ring.loss_background, noise=NOISE, n_starts=2
     )
-    spec = METHODS["pigp-physics-mean"].with_options(
-        center_prior="x0", num_restarts=2, raw_samples=64
-    )
+    spec = METHODS["pigp-physics"].with_options(n_starts=2)
     x_start = torch.zeros(len(ioc.knob_names), dtype=torch.float64)
     with machine(ioc, ring.bounds) as m:
         optimizer = spec.build(RunContext(machine=m, prior=prior, seed=0))

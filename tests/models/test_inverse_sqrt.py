@@ -209,8 +209,8 @@ def test_physics_bo_reaches_the_peak_of_another_machine(prior):
 def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prior):
     """``centre_information(x)`` equals tr(B C_mu) before minus after adding a reading at x to
     the Laplace fit (theta held fixed), and is largest off the fitted centre (the form is flat
-    there); ``exploit_every`` / ``info_every`` pick the acquisition of each ask."""
-    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2, exploit_every=4, info_every=2)
+    there); ``info_every`` picks the acquisition of each ask."""
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=2, info_every=2)
     model = bo.model
     theta = true_theta(model, [0.004, -0.003, 0.002, 0.0, 0.001], 0.8, 1.0)
     gen = torch.Generator().manual_seed(2)
@@ -234,11 +234,11 @@ def test_centre_information_is_the_laplace_trace_reduction_and_the_schedule(prio
     # at the centre only through the correlation of mu with c: a few per cent of the best
     assert float(bo.centre_information(model.center().unsqueeze(0))[0]) < 0.05 * float(gains.max())
     kinds = []
-    for _ in range(4):  # told 12, 13, 14, 15: exploit (takes precedence), UCB, inform, UCB
+    for _ in range(4):  # told 12, 13, 14, 15: inform, UCB, inform, UCB
         x = bo.ask()
-        kinds.append((bo.last_info["exploit"], bo.last_info["inform"]))
+        kinds.append(bo.last_info["inform"])
         bo.tell(x, float(model.form(x.unsqueeze(0), theta)[0]))
-    assert kinds == [(True, False), (False, False), (False, True), (False, False)]
+    assert kinds == [True, False, True, False]
     with pytest.raises(ValueError, match="info_every must be >= 0"):
         PhysicsModelBO(prior.bounds, prior, info_every=-1)
 
@@ -330,36 +330,6 @@ def test_box_optimum_is_the_b_metric_projection_and_regret_metric_its_jacobian(p
     expected = diag.clone()
     expected[0, 0] = expected[2, 2] = 0.0
     torch.testing.assert_close(model.regret_metric(), expected)
-
-
-def test_adaptive_trust_box_halves_after_failures_and_doubles_after_successes(prior):
-    """TuRBO-like rule on a scripted sequence of best posterior means (tol = noise/4 = 0.005):
-    four non-improvements halve the half-width (floor min_step_limit), three improvements in a
-    row double it (cap step_limit)."""
-    bo = PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=0.6, min_step_limit=0.1)
-    assert bo.success_tol == pytest.approx(0.25 * prior.noise)
-    widths = []
-    means = [1.0] + [1.004] * 4 + [1.0] * 8 + [1.1, 1.2, 1.3] + [1.3] * 2 + [1.4, 1.5, 1.6]
-    for m in means:
-        bo._adapt(m)
-        widths.append(bo.box_half_width)
-    # 1.004 is below the tolerance: failures 1-4 -> 0.3; 4 more -> 0.15; 4 more -> 0.1 (floor)
-    assert widths[4] == pytest.approx(0.3) and widths[3] == pytest.approx(0.6)
-    assert widths[8] == pytest.approx(0.15) and widths[12] == pytest.approx(0.1)
-    assert widths[15] == pytest.approx(0.2)  # three successes in a row double it
-    assert widths[17] == pytest.approx(0.2)  # two failures: no change yet
-    assert widths[20] == pytest.approx(0.4)
-    box = bo.trust_box(torch.zeros(D, dtype=DT))
-    torch.testing.assert_close(box[1], torch.full((D,), 0.4 * 0.015, dtype=DT))
-
-
-def test_adaptive_trust_box_validation(prior):
-    with pytest.raises(ValueError, match="adapt_box needs a step_limit"):
-        PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=None)
-    with pytest.raises(ValueError, match="min_step_limit must lie in"):
-        PhysicsModelBO(prior.bounds, prior, adapt_box=True, step_limit=0.3, min_step_limit=0.5)
-    with pytest.raises(ValueError, match="failure_streak must be >= 1"):
-        PhysicsModelBO(prior.bounds, prior, adapt_box=True, failure_streak=0)
 
 
 def _ensemble_cov(v: torch.Tensor, along: float, across: float) -> torch.Tensor:

@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
+from pigp_torch.models.physics_posterior import _extend_theta
 from pigp_torch.optimizers.physics_bo import (
     BROADER_SHAPE,
     RELAXED_STAGES,
     PhysicsModelBO,
-    _extend_theta,
     describe_stage,
     relaxed_stages,
 )

@@ -220,7 +220,7 @@ def test_each_method_is_built_with_its_options(tmp_path):
     )
     assert isinstance(phys.optimizer, PhysicsModelBO) and phys.optimizer.step_limit == 0.6
     assert phys.optimizer.model.residual_std == 0.0
-    assert {"center_std", "exploit_every"} <= method_options("pigp-physics")
+    assert {"center_std", "info_every"} <= method_options("pigp-physics")
     ensemble_options = {"center_prior", "center_cov_scale", "center_floor_std", "shape_std"}
     assert ensemble_options <= method_options("pigp-physics")
     fast = build_run(
