@@ -56,7 +56,7 @@ EXIT_HELP = """exit status:
   1    stopped by a safety rule, a machine error or another error; knobs restored
        (also: a PV that does not connect, nothing moved)
   2    invalid input (run file, run log, arguments); nothing moved
-  3    the knobs were NOT restored (whatever ended the run): the last setpoint written
+  3    the knobs were NOT restored (whatever ended the run): the last setpoint acknowledged
        is printed and logged (end record: restored false, last_setpoint)
   4    refused: another run holds the run log or the machine (lock file named)
   129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored

@@ -89,17 +89,39 @@ def print_summary(path: Path, out) -> dict | None:
         say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
                   "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
         if isinstance(last, list):
-            say(out, f"last setpoint written: {fmt_knobs(names, last)}")
+            say(out, f"last setpoint acknowledged: {fmt_knobs(names, last)}")
+        intended = end.get("last_intended")
+        if isinstance(intended, list) and intended != last:
+            say(out, f"last setpoint intended (never acknowledged): {fmt_knobs(names, intended)}")
         if isinstance(final, list):
             say(out, f"readback now: {fmt_knobs(names, final)}")
         elif final is not None:
             say(out, f"readback now: {final}")
+        _against_target(names, end, out)
     elif isinstance(final, list):
         say(out, f"knobs restored to {end.get('restored_to')}, readback: {fmt_knobs(names, final)}")
     elif final is not None:
         say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
     say(out, f"run log: {path}")
     return end
+
+
+def _against_target(names, end: dict, out) -> None:
+    """Per knob: the restore target, the setpoint and the readback at the end, and how far
+    each is from the target (what is known when the restore did not finish)."""
+    target, sp, rb = end.get("restore_target"), end.get("final_setpoints"), end.get("final_knobs")
+    if not isinstance(target, list):
+        return
+    cols = [(k, v) for k, v in (("setpoint", sp), ("readback", rb)) if isinstance(v, list)]
+    head = f"  {'knob':<14}{'target':>12}" + "".join(f"{k:>12}{k[:2] + '-target':>13}"
+                                                     for k, _ in cols)  # fmt: skip
+    say(out, "the knobs against the restore target:")
+    say(out, head)
+    for i, n in enumerate(names):
+        line = f"  {n:<14}{target[i]:>12.6g}"
+        for _, v in cols:
+            line += f"{v[i]:>12.6g}{v[i] - target[i]:>13.3g}"
+        say(out, line)
 
 
 def print_resume_state(setup, records, out) -> None:

@@ -127,6 +127,11 @@ class GuardedMachine:
         """The current setting (``d`` float64, a copy)."""
         return self._x.clone()
 
+    @property
+    def last_acknowledged(self) -> torch.Tensor:
+        """The last setting applied (``d`` float64, a copy): the setpoints the machine holds."""
+        return self._x.clone()
+
     def read(self) -> float:  # pragma: no cover - abstract
         raise NotImplementedError
 

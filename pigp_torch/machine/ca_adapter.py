@@ -171,12 +171,21 @@ class CaprotoAdapter:
             out.append((lo, hi, src))
         return out
 
-    def write_many(self, names: list[str], values: list[float], timeout: float) -> None:
-        """Write ``values`` to ``names`` in parallel and wait for every put completion."""
+    def write_many(
+        self, names: list[str], values: list[float], timeout: float, on_ack=None
+    ) -> None:
+        """Write ``values`` to ``names`` in parallel and wait for every put completion;
+        ``on_ack(i)`` (if given) is called for each put completed with success, as it arrives
+        (also when others never complete)."""
         values = [float(v) for v in values]
 
         def start(i, pv, cb, t):
-            pv.write([values[i]], wait=False, callback=cb, timeout=t, notify=True)
+            def done(response, cb=cb, i=i):
+                if on_ack is not None and response.status.success:
+                    on_ack(i)
+                cb(response)
+
+            pv.write([values[i]], wait=False, callback=done, timeout=t, notify=True)
 
         responses = self._wait_all(names, start, "put", timeout)
         failed = [n for n, r in zip(names, responses, strict=True) if not r.status.success]

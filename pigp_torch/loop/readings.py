@@ -1,0 +1,250 @@
+r"""Which readings a run believes: finite, inside the objective's physical range, and — when one
+stands out from the run's own readings — confirmed by a re-read (:class:`ReadingJudge`); and the
+reading loop that applies it (:func:`plausible_reading`).
+
+**The rule.** Let :math:`y_1, \dots, y_n` be the readings accepted so far in the run (replayed
+ones included), :math:`\tilde y` their median, :math:`\mathrm{MAD}` their median absolute
+deviation and :math:`\sigma` the stated noise of one reading (objective units; ``None``: not
+stated). A new reading :math:`y` is
+
+* *invalid* — discarded, logged, read again — if it is not finite or lies outside the physical
+  range :math:`[\ell, h]` (``objective_range``);
+* *suspicious* if :math:`|y - \tilde y| > k\, s` with the robust scale
+  :math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` and :math:`k` = :data:`OUTLIER_K` (= 5),
+  once :math:`n \ge` :data:`MIN_READINGS` (= 5), and with :math:`s = \sigma` from the second
+  reading until then. The rule needs the stated noise: without :math:`\sigma` it does not apply
+  (only finite and in range). A suspicious reading is read again at the same setting and kept
+  only if the two agree, :math:`|y - y'| \le a\sqrt 2\, \sigma` with :math:`a` =
+  :data:`AGREE_A` (= 4); the evaluation's value is then their mean. If they do not agree, the
+  suspicious reading is discarded (logged) and the re-read is judged afresh as the reading.
+
+A reading far from the others is not discarded for being far — a run that optimizes moves its
+readings by many noise sigmas — only for not repeating: a genuine improvement reads the same
+twice, a glitch does not. A glitch that repeats on consecutive readings with the same value
+cannot be told from a real change by readings alone; the physical range is the defence against
+those, and the best point is read again before the knobs are set there (``restore: best``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import torch
+
+from pigp_torch.machine.errors import ReadError
+
+#: Outlier threshold :math:`k` in robust-scale units.
+OUTLIER_K = 5.0
+#: Agreement of a re-read with a suspicious reading, :math:`a` in units of :math:`\sqrt2\,s'`.
+AGREE_A = 4.0
+#: Accepted readings before the median/MAD rule applies on its own scale.
+MIN_READINGS = 5
+#: Consistency constant of the MAD for a Gaussian (MAD x 1.4826 estimates sigma).
+MAD_TO_SIGMA = 1.4826
+
+
+class ReadingJudge:
+    r"""Keeps the run's accepted readings and says whether a new one is valid, suspicious, or
+    agrees with a re-read (the rule in the module docstring).
+
+    Args:
+        noise: stated noise :math:`\sigma` of one reading (objective units, > 0), or ``None``.
+        objective_range: ``(lower, upper)`` physical range of a reading, or ``None``.
+        readings: readings accepted before (a resumed run's), in order.
+    """
+
+    def __init__(self, noise=None, objective_range=None, readings=()) -> None:
+        self.noise = None if noise is None else float(noise)
+        if self.noise is not None and not (0.0 < self.noise < math.inf):
+            raise ValueError(f"noise must be positive and finite, got {noise}")
+        if objective_range is not None:
+            lo, hi = (float(v) for v in objective_range)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"objective_range must be finite with lower < upper, got "
+                                 f"{objective_range}")  # fmt: skip
+            objective_range = (lo, hi)
+        self.objective_range = objective_range
+        self.readings: list[float] = [float(y) for y in readings]
+
+    def accept(self, y: float) -> None:
+        self.readings.append(float(y))
+
+    def invalid(self, y: float) -> str | None:
+        """Why ``y`` is invalid (not finite, outside the range), ``None`` if it is not."""
+        if not math.isfinite(y):
+            return f"non-finite reading {y}"
+        if self.objective_range is not None:
+            lo, hi = self.objective_range
+            if not lo <= y <= hi:
+                return f"reading {y:.6g} outside the objective range [{lo:g}, {hi:g}]"
+        return None
+
+    def scale(self) -> float | None:
+        r""":math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` (``None`` while the rule does not
+        apply)."""
+        n = len(self.readings)
+        if self.noise is None or n == 0:
+            return None
+        if n >= MIN_READINGS:
+            y = torch.tensor(self.readings, dtype=torch.float64)
+            return max(float((y - y.median()).abs().median()) * MAD_TO_SIGMA, self.noise)
+        return self.noise
+
+    def suspicious(self, y: float) -> str | None:
+        """Why ``y`` needs a re-read (far from the median of the accepted readings)."""
+        s = self.scale()
+        if s is None:
+            return None
+        med = float(torch.tensor(self.readings, dtype=torch.float64).median())
+        if abs(y - med) > OUTLIER_K * s:
+            return (
+                f"reading {y:.6g} is {abs(y - med) / s:.3g} robust sigmas (s = {s:.3g}) from the "
+                f"median {med:.6g} of the run's {len(self.readings)} readings"
+            )
+        return None
+
+    def agreement_tolerance(self) -> float:
+        r""":math:`a\sqrt2\,\sigma`: how far a re-read may lie from a suspicious reading."""
+        return AGREE_A * math.sqrt(2.0) * (self.noise or 0.0)
+
+
+def plausible_reading(
+    take: Callable[[], float | None],
+    judge: ReadingJudge | None,
+    retries: int,
+    interval: float,
+    on_discard: Callable[[str, float], None],
+) -> tuple[float, int]:
+    r"""A reading the run believes: ``take()`` until one is valid and (if suspicious) confirmed.
+
+    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (checked
+    against the machine's state, reported already), or raises ``ReadError``/``TimeoutError``
+    (counted as a failed attempt) or ``MachineError`` (passed on). A reading invalid under
+    ``judge`` is reported to ``on_discard(reason, y)``; a suspicious one is read again and kept
+    only if the re-read agrees (the evaluation's value is then their mean), else reported and
+    discarded. At most ``retries`` failed attempts (``interval`` s apart); a re-read of a
+    suspicious reading is not one, so at most ``2 (retries + 1)`` reads in all.
+
+    Returns:
+        ``(y, reads)``: the value and the readings taken.
+
+    Raises:
+        ReadError: ``retries + 1`` failed attempts.
+    """
+    problems: list[str] = []
+    failures = reads = 0
+    pending: tuple[float, str] | None = None  # a suspicious reading waiting for its re-read
+    while True:
+        if reads > 0 and interval > 0 and pending is None:
+            time.sleep(interval)
+        reads += 1
+        try:
+            y = take()
+        except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
+            y, problem = None, f"{type(err).__name__}: {err}"
+        else:
+            problem = "discarded" if y is None else None
+            if y is not None:
+                y = float(y)
+                why = judge.invalid(y) if judge is not None else (
+                    None if math.isfinite(y) else f"non-finite reading {y}"
+                )  # fmt: skip
+                if why is not None:
+                    if math.isfinite(y):  # NaN/inf are retried quietly, as they always were
+                        on_discard(why, y)
+                    y, problem = None, why
+        if y is None:
+            if pending is not None:  # the re-read failed: the suspicious one is not confirmed
+                on_discard(f"{pending[1]}; its re-read failed ({problem})", pending[0])
+                problems.append(f"unconfirmed: {pending[1]}")
+                pending = None
+                failures += 1
+            problems.append(problem)
+            failures += 1
+            if failures > retries:
+                break
+            continue
+        if pending is not None:
+            first, why = pending
+            pending = None
+            tol = judge.agreement_tolerance()
+            if abs(y - first) <= tol:
+                value = 0.5 * (first + y)
+                judge.accept(value)
+                return value, reads
+            on_discard(
+                f"{why}; not confirmed: the re-read {y:.6g} differs by {abs(y - first):.3g} "
+                f"> {tol:.3g}",
+                first,
+            )
+            problems.append(f"unconfirmed reading {first:.6g}")
+            failures += 1
+            if failures > retries:
+                break
+        why = judge.suspicious(y) if judge is not None else None
+        if why is None:
+            if judge is not None:
+                judge.accept(y)
+            return y, reads
+        pending = (y, why)
+    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+
+
+#: Fresh readings taken at the best point before the knobs are left there (``restore: best``).
+CONFIRM_READS = 3
+#: The best point reproduces if the mean of those readings is no worse than the best reading
+#: by more than this many :math:`s\sqrt{1 + 1/m}`.
+CONFIRM_C = 4.0
+
+
+def confirm_best(
+    take: Callable[[], float],
+    y_best: float,
+    judge: ReadingJudge | None,
+    maximize: bool,
+    n: int = CONFIRM_READS,
+) -> dict:
+    r"""Read the best point again ``n`` times (``take()``, the knobs already there) and say
+    whether it reproduces.
+
+    With :math:`\bar y` the mean of the :math:`m = n` fresh readings, the point is confirmed if
+    :math:`\bar y` is not worse than the best reading :math:`y^*` by more than
+    :math:`C s \sqrt{1 + 1/m}` (:data:`CONFIRM_C` = 4), where :math:`s` is the stated noise
+    :math:`\sigma`, else :math:`1.4826\,\mathrm{MAD}` of the run's readings, else 0 (then only an
+    exact repeat confirms). A glitch that became the best does not reproduce; a genuine best,
+    read high by its noise, does.
+
+    Returns:
+        ``{"confirmed", "readings", "mean", "best", "tolerance", "message"}``; ``"abandoned"``
+        when a second signal (``KeyboardInterrupt``) stopped it, ``"error"`` when a reading
+        failed (then not confirmed).
+    """
+    readings: list[float] = []
+    s = 0.0
+    if judge is not None:
+        if judge.noise is not None:
+            s = judge.noise
+        elif len(judge.readings) >= 2:
+            y = torch.tensor(judge.readings, dtype=torch.float64)
+            s = float((y - y.median()).abs().median()) * MAD_TO_SIGMA
+    tol = CONFIRM_C * s * math.sqrt(1.0 + 1.0 / n)
+    out = {"confirmed": False, "readings": readings, "best": float(y_best), "tolerance": tol}
+    try:
+        for _ in range(n):
+            readings.append(float(take()))
+    except KeyboardInterrupt as err:
+        out.update(abandoned=True, message=f"stopped by a signal while reading it: {err}")
+        return out
+    except Exception as err:
+        out.update(error=f"{type(err).__name__}: {err}", message=f"no reading there ({err})")
+        return out
+    mean = sum(readings) / n
+    worse = (y_best - mean) if maximize else (mean - y_best)
+    out.update(mean=mean, confirmed=bool(worse <= tol))
+    out["message"] = (
+        f"{n} fresh readings there average {mean:.6g} against the best reading {y_best:.6g} "
+        f"(worse by {max(worse, 0.0):.3g}, tolerance {tol:.3g})"
+    )
+    return out
