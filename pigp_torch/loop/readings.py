@@ -16,7 +16,9 @@ stated). A new reading :math:`y` is
   (only finite and in range). A suspicious reading is read again at the same setting and kept
   only if the two agree, :math:`|y - y'| \le a\sqrt 2\, \sigma` with :math:`a` =
   :data:`AGREE_A` (= 4); the evaluation's value is then their mean. If they do not agree, the
-  suspicious reading is discarded (logged) and the re-read is judged afresh as the reading.
+  re-read is judged afresh: not suspicious, it is the reading and the suspicious one is
+  discarded (logged); suspicious too, it waits as well and the next reading that agrees with
+  either decides (all within ``read_retries``).
 
 A reading far from the others is not discarded for being far — a run that optimizes moves its
 readings by many noise sigmas — only for not repeating: a genuine improvement reads the same
@@ -121,74 +123,74 @@ def plausible_reading(
 
     ``take()`` returns one reading, or ``None`` for a reading it discarded itself (checked
     against the machine's state, reported already), or raises ``ReadError``/``TimeoutError``
-    (counted as a failed attempt) or ``MachineError`` (passed on). A reading invalid under
-    ``judge`` is reported to ``on_discard(reason, y)``; a suspicious one is read again and kept
-    only if the re-read agrees (the evaluation's value is then their mean), else reported and
-    discarded. At most ``retries`` failed attempts (``interval`` s apart); a re-read of a
-    suspicious reading is not one, so at most ``2 (retries + 1)`` reads in all.
+    (a failed attempt) or ``MachineError`` (passed on). A reading invalid under ``judge`` is
+    reported to ``on_discard(reason, y)`` (NaN/inf quietly) and is a failed attempt. A
+    suspicious reading waits for a re-read: a later valid reading that agrees with it confirms
+    it (the value is their mean; other waiting readings are discarded); one that is not
+    suspicious itself is kept and the waiting ones are discarded; one that is suspicious and
+    agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
+    attempts (``interval`` s apart), so at most ``retries + 2`` reads.
 
     Returns:
         ``(y, reads)``: the value and the readings taken.
 
     Raises:
-        ReadError: ``retries + 1`` failed attempts.
+        ReadError: more than ``retries`` failed attempts.
     """
     problems: list[str] = []
     failures = reads = 0
-    pending: tuple[float, str] | None = None  # a suspicious reading waiting for its re-read
-    while True:
-        if reads > 0 and interval > 0 and pending is None:
+    pending: list[tuple[float, str]] = []  # suspicious readings waiting for a re-read
+
+    def drop_pending(keep=None, detail: str = "") -> None:
+        for y_p, why in pending:
+            if keep is None or y_p != keep:
+                on_discard(f"{why}; not confirmed{detail}", y_p)
+                problems.append(f"unconfirmed reading {y_p:.6g}")
+
+    while failures <= retries:
+        if reads > 0 and interval > 0 and not pending:
             time.sleep(interval)
         reads += 1
         try:
             y = take()
         except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
-            y, problem = None, f"{type(err).__name__}: {err}"
-        else:
-            problem = "discarded" if y is None else None
-            if y is not None:
-                y = float(y)
-                why = judge.invalid(y) if judge is not None else (
-                    None if math.isfinite(y) else f"non-finite reading {y}"
-                )  # fmt: skip
-                if why is not None:
-                    if math.isfinite(y):  # NaN/inf are retried quietly, as they always were
-                        on_discard(why, y)
-                    y, problem = None, why
-        if y is None:
-            if pending is not None:  # the re-read failed: the suspicious one is not confirmed
-                on_discard(f"{pending[1]}; its re-read failed ({problem})", pending[0])
-                problems.append(f"unconfirmed: {pending[1]}")
-                pending = None
-                failures += 1
-            problems.append(problem)
+            problems.append(f"{type(err).__name__}: {err}")
             failures += 1
-            if failures > retries:
-                break
             continue
-        if pending is not None:
-            first, why = pending
-            pending = None
+        if y is None:
+            problems.append("discarded")
+            failures += 1
+            continue
+        y = float(y)
+        if judge is not None:
+            why = judge.invalid(y)
+        else:
+            why = None if math.isfinite(y) else f"non-finite reading {y}"
+        if why is not None:
+            if math.isfinite(y):  # NaN/inf are retried quietly, as they always were
+                on_discard(why, y)
+            problems.append(why)
+            failures += 1
+            continue
+        if pending:
             tol = judge.agreement_tolerance()
-            if abs(y - first) <= tol:
-                value = 0.5 * (first + y)
+            match = next((p for p, _ in pending if abs(y - p) <= tol), None)
+            if match is not None:
+                drop_pending(keep=match, detail=f": a re-read agreed with {match:.6g} instead")
+                value = 0.5 * (match + y)
                 judge.accept(value)
                 return value, reads
-            on_discard(
-                f"{why}; not confirmed: the re-read {y:.6g} differs by {abs(y - first):.3g} "
-                f"> {tol:.3g}",
-                first,
-            )
-            problems.append(f"unconfirmed reading {first:.6g}")
-            failures += 1
-            if failures > retries:
-                break
         why = judge.suspicious(y) if judge is not None else None
         if why is None:
+            drop_pending(detail=f": the re-read {y:.6g} differs by more than "
+                                f"{judge.agreement_tolerance() if judge else 0.0:.3g}")  # fmt: skip
             if judge is not None:
                 judge.accept(y)
             return y, reads
-        pending = (y, why)
+        if pending:
+            failures += 1  # two suspicious readings that disagree
+        pending.append((y, why))
+    drop_pending(detail=": no re-read agreed")
     raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
 
 

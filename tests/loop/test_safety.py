@@ -545,3 +545,41 @@ def test_an_ignored_sighup_stays_ignored(tmp_path):
         assert read_log(tmp_path / "r.jsonl").last_end["status"] == "completed"
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+def test_two_signals_during_the_restore_say_what_is_known(tmp_path):
+    """SIGTERM stops the run; two more arrive during the restore, just after its last set: the
+    restore is abandoned, so the run reports NOT restored (pessimistic) — but the end record
+    and the summary say what is known: the last acknowledged setpoint, and the setpoints and
+    readbacks against the restore target (here exactly back)."""
+    from io import StringIO
+
+    from pigp_torch.commands.optimize_output import print_summary
+
+    class Signals(FaultyMachine):
+        def read(self):
+            if self.n_reads == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return super().read()
+
+        def set(self, x):
+            super().set(x)
+            if self.n_reads >= 2 and torch.equal(self._x, torch.tensor(INITIAL, dtype=D)):
+                os.kill(os.getpid(), signal.SIGTERM)
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    m = Signals()
+    path = tmp_path / "r.jsonl"
+    with pytest.warns(UserWarning, match="could not restore"), pytest.raises(Terminated):
+        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=path, moves="ramp", max_step=0.2)
+    end = read_log(path).last_end
+    assert end["restored"] is False and end["deferred_signals"] == ["SIGTERM", "SIGTERM"]
+    assert end["last_setpoint"] == end["final_setpoints"] == end["restore_target"] == INITIAL
+    assert end["final_knobs"] == INITIAL and m.get().tolist() == INITIAL
+    out = StringIO()
+    print_summary(path, out)
+    text = out.getvalue()
+    assert "KNOBS NOT RESTORED" in text and "last setpoint acknowledged: qs1=0.1, qs2=0.2" in text
+    rows = [ln.split() for ln in text.splitlines() if ln.strip().startswith("qs")]
+    assert [r[0] for r in rows] == ["qs1", "qs2"]
+    assert all(float(r[3]) == 0.0 and float(r[5]) == 0.0 for r in rows)  # sp/rb - target
