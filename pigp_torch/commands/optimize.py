@@ -48,7 +48,11 @@ DESCRIPTION = (
     "next step, and every setting is logged before it is written; the initial knobs are "
     "restored on Ctrl-C, SIGTERM, SIGHUP, errors and at the end (unless restore: best). "
     "One run per run log and per machine (lock files). --resume LOG continues a logged run "
-    "and restores to the knobs of its first start; --dry-run only prints the plan."
+    "and restores to the knobs of its first start; --dry-run only prints the plan. "
+    "Ramps and restores work on the SETPOINTS (never from readbacks; no put above max_step). "
+    "A reading counts only if finite, inside objective_range (default: the objective PV's "
+    "limits) and, with objective_noise, confirmed by a re-read when far from the run's own; "
+    "with restore: best the best point is read again first, or the initial knobs are restored."
 )
 
 EXIT_HELP = """exit status:

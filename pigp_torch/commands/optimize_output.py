@@ -44,6 +44,11 @@ def print_plan(setup, records, out) -> None:
         f"{floor}",
         file=out,
     )
+    opts = setup.options()
+    rng = opts.objective_range or getattr(setup.machine, "objective_limits", None)
+    noise = "not stated: no re-read of outliers" if opts.noise is None else f"{opts.noise:g}"
+    rng_text = "none" if rng is None else f"[{rng[0]:g}, {rng[1]:g}]"
+    print(f"  readings: objective range {rng_text}; reading noise {noise}", file=out)
     if setup.prior_info:
         p = setup.prior_info
         print(f"  prior {p['path']} (sha256 {p['sha256'][:16]}…)", file=out)
