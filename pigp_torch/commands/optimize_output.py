@@ -20,8 +20,10 @@ def print_plan(setup, records, out) -> None:
         machine = f"simulated ring (error seed {m.error_seed}, noise {m.noise:g}, seed {m.seed})"
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"
-    now = setup.machine.get().tolist()
     from pigp_torch.loop import effective_max_step
+    from pigp_torch.loop.moves import setpoints_of
+
+    now = setpoints_of(setup.machine).tolist()  # setpoints: what a ramp starts from
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)
@@ -139,8 +141,10 @@ def print_resume_state(setup, records, out) -> None:
     initial = records.initial_knobs
     if initial is None:
         return
+    from pigp_torch.loop.moves import setpoints_of
+
     names = setup.config.knob_names
-    now = setup.machine.get().tolist()
+    now = setpoints_of(setup.machine).tolist()
     intent = records.last_intent
     last = intent["x"] if intent else None
     say(out, "resume: the knobs now against the initial knobs of the first start (the restore "
