@@ -298,10 +298,14 @@ def optimize(
                     target, "restore best", None
                 )
                 if restore_error is None:
+
+                    def confirm_discard(reason: str, y: float) -> None:
+                        on_discard_at(best["step"])(f"confirming the best point: {reason}", y)
+
                     confirmation = confirm_best(
                         lambda: checked_read(
                             objective, target, read_tol, opts.read_retries, opts.retry_interval,
-                            on_discard_at(None), ReadingJudge(None, objective_range),
+                            confirm_discard, ReadingJudge(None, objective_range),
                         )[0],
                         best["y"], judge, maximize,
                     )  # fmt: skip
@@ -319,7 +323,8 @@ def optimize(
                     if log is not None:
                         message = f"{why}; restoring the initial knobs instead"
                         with contextlib.suppress(Exception):
-                            log.write("notice", step=None, time=_utc_now(), message=message)
+                            log.write("notice", step=best["step"], time=_utc_now(),
+                                      message=message)  # fmt: skip
                     target = x_initial
                     restore_error, more, errs = restore_to(target, "restore initial", reference)
                     attempts_made, attempt_errors = attempts_made + more, attempt_errors + errs

@@ -101,9 +101,15 @@ def test_an_unconfirmed_best_restores_the_initial_knobs(tmp_path):
     with pytest.warns(UserWarning, match="the best point did not reproduce"):
         optimize(m, Walk(BOUNDS, step=0.05), None, 6, log=tmp_path / "r.jsonl", restore="best",
                  noise=SIGMA)  # fmt: skip
-    end = read_log(tmp_path / "r.jsonl").last_end
+    records = read_log(tmp_path / "r.jsonl")
+    end = records.last_end
     assert end["best"]["y"] == 50.0 and end["best_confirmation"]["confirmed"] is False
     assert end["restored_to"] == "initial (best not confirmed)" and m.get().tolist() == INITIAL
+    from pigp_torch.report import _notices
+
+    notices = _notices(records, records.X(), None, ["qs1", "qs2"])
+    step = end["best"]["step"] + 1
+    assert f"evaluation {step}: the best point did not reproduce" in "\n".join(notices)
 
 
 def test_confirm_best_tolerance():
