@@ -137,6 +137,7 @@ def test_a_glitch_inside_the_range_is_reread_and_discarded(ioc, probe, ring, tmp
     glitch is discarded (logged) and never the best."""
     probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
     probe.write(ioc.glitch_value_pv, 50.0)
+    mark = ioc.n_puts()
     config = write_config(tmp_path, ioc, ring, objective_noise=0.04, budget=6)
     with fault_at_read(4, lambda: probe.write(ioc.glitch_readings_pv, 1)):
         code, captured = run(config, capsys)
@@ -146,6 +147,7 @@ def test_a_glitch_inside_the_range_is_reread_and_discarded(ioc, probe, ring, tmp
     assert "not confirmed: the re-read" in log.discarded[0]["reason"]
     assert float(log.Y().max()) < 5.0 and log.last_end["best"]["y"] < 5.0
     assert torch.equal(probe.read_many(ioc.setpoint_pvs[:2]), start_of(ring))
+    assert worst_step(ioc, mark) <= 1 + 1e-9
 
 
 def test_a_repeated_glitch_is_caught_when_the_best_is_confirmed(ioc, probe, ring, tmp_path,
