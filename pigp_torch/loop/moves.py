@@ -12,7 +12,7 @@ import torch
 
 from pigp_torch._utils import DTYPE, max_step_tensor
 from pigp_torch.loop.readings import plausible_reading
-from pigp_torch.machine.base import check_setting, ramp_steps
+from pigp_torch.machine.base import check_setting, ramp_steps, setpoints_of
 from pigp_torch.machine.errors import MachineError, ReadbackError
 
 #: Ramp steps are planned at this fraction of the step limit: a machine that measures the step
@@ -126,19 +126,6 @@ def read(
     return plausible_reading(
         measure, judge, retries, interval, on_discard or (lambda reason, y: None)
     )
-
-
-def setpoints_of(machine) -> torch.Tensor:
-    """Where a ramp starts: the machine's setpoints (``setpoints()``, read from the IOC), else
-    its last acknowledged setting (``last_acknowledged``), else ``get()`` — never a readback
-    where the machine tells setpoints from readbacks."""
-    setpoints = getattr(machine, "setpoints", None)
-    if callable(setpoints):
-        return torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1).clone()
-    acked = getattr(machine, "last_acknowledged", None)
-    if acked is not None:
-        return torch.as_tensor(acked, dtype=DTYPE).reshape(-1).clone()
-    return torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1).clone()
 
 
 def machine_state(machine) -> dict:

@@ -251,3 +251,26 @@ def test_open_close_cycles_leak_no_file_descriptors(ioc):
     for _ in range(5):
         cycle()
     assert n_fds() == before
+
+
+def test_the_step_limit_is_measured_from_the_setpoints_not_the_readbacks(ioc, probe):
+    """With every readback 0.001 A above its setpoint, a set of exactly max_step from the
+    setpoint is accepted and one a little beyond is refused before anything is written; the
+    IOC's put log shows the accepted step, and last_acknowledged follows the puts."""
+    d = len(ioc.knob_names)
+    probe.write(ioc.readback_offset_pv, 0.001)
+    m_step = 0.004
+    with make_machine(ioc, max_step=torch.full((d,), m_step), tolerance=0.002) as m:
+        x0 = m.setpoints()
+        assert torch.equal(m.last_acknowledged, x0) and torch.equal(x0, torch.zeros(d))
+        assert torch.allclose(m.get(), x0 + 0.001, atol=1e-12)  # the readbacks read off
+        mark = ioc.n_puts()
+        x1 = x0 - m_step  # 0.005 from the readbacks: refused if measured from them
+        m.set(x1)
+        assert torch.equal(m.last_acknowledged, x1)
+        steps = [abs(p["value"] - p["previous"]) for p in ioc.puts(mark)]
+        assert len(steps) == d and max(steps) == pytest.approx(m_step, abs=1e-15)
+        with pytest.raises(ValueError, match="step too large"):
+            m.set(x1 - m_step * 1.01)
+        assert ioc.n_puts() == mark + d  # nothing written
+        assert torch.equal(probe.read_many(ioc.setpoint_pvs), x1)
