@@ -15,6 +15,7 @@ import torch
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch._utils import utc_now as _utc_now
 from pigp_torch.loop.moves import (
+    averaged_parts,
     checked_read,
     effective_max_step,
     move,
@@ -207,8 +208,9 @@ def optimize(
             on_discard = on_discard_at(step)
             if not opts.check_readings:
                 return read(
-                    objective.read, opts.read_retries, opts.retry_interval, judge, on_discard
-                )
+                    objective.read, opts.read_retries, opts.retry_interval, judge, on_discard,
+                    lambda: averaged_parts(objective),
+                )  # fmt: skip
             return checked_read(
                 objective, x, read_tol, opts.read_retries, opts.retry_interval, on_discard, judge
             )

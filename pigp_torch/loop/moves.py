@@ -118,13 +118,18 @@ def verify_readback(
 
 
 def read(
-    measure: Callable[[], float], retries: int, interval: float, judge=None, on_discard=None
+    measure: Callable[[], float],
+    retries: int,
+    interval: float,
+    judge=None,
+    on_discard=None,
+    parts=None,
 ) -> tuple[float, int]:
     """A valid reading and the number of attempts it took (:func:`plausible_reading` with
-    ``judge``, default: finite only); ``ReadError`` after ``retries + 1`` invalid ones
-    (``interval`` seconds apart)."""
+    ``judge``, default: finite only, and ``parts``); ``ReadError`` after ``retries + 1``
+    invalid ones (``interval`` seconds apart)."""
     return plausible_reading(
-        measure, judge, retries, interval, on_discard or (lambda reason, y: None)
+        measure, judge, retries, interval, on_discard or (lambda reason, y: None), parts
     )
 
 
@@ -210,8 +215,16 @@ def checked_read(
         ReadError: no valid, consistent reading in ``retries + 1`` attempts.
     """
     return plausible_reading(
-        lambda: checked_take(machine, x, tol, on_discard), judge, retries, interval, on_discard
-    )
+        lambda: checked_take(machine, x, tol, on_discard), judge, retries, interval, on_discard,
+        parts=lambda: averaged_parts(machine),
+    )  # fmt: skip
+
+
+def averaged_parts(machine) -> list | None:
+    """The single readings a machine averaged into its last reading (``last_reading["values"]``
+    where it reports them, as ``EpicsMachine`` does), else ``None``."""
+    info = getattr(machine, "last_reading", None)
+    return info.get("values") if isinstance(info, dict) else None
 
 
 def restore_knobs(

@@ -83,6 +83,15 @@ class ReadingJudge:
                 return f"reading {y:.6g} outside the objective range [{lo:g}, {hi:g}]"
         return None
 
+    def invalid_parts(self, parts) -> str | None:
+        """Why a reading averaged from ``parts`` is invalid: one of them is (an average would
+        dilute a glitch into the range), ``None`` if none is."""
+        for k, part in enumerate(parts or ()):
+            why = self.invalid(float(part))
+            if why is not None:
+                return f"{why} (reading {k + 1} of {len(parts)} averaged)"
+        return None
+
     def scale(self) -> float | None:
         r""":math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` (``None`` while the rule does not
         apply)."""
@@ -118,6 +127,7 @@ def plausible_reading(
     retries: int,
     interval: float,
     on_discard: Callable[[str, float], None],
+    parts: Callable[[], list | None] | None = None,
 ) -> tuple[float, int]:
     r"""A reading the run believes: ``take()`` until one is valid and (if suspicious) confirmed.
 
@@ -129,7 +139,8 @@ def plausible_reading(
     it (the value is their mean; other waiting readings are discarded); one that is not
     suspicious itself is kept and the waiting ones are discarded; one that is suspicious and
     agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
-    attempts (``interval`` s apart), so at most ``retries + 2`` reads.
+    attempts (``interval`` s apart), so at most ``retries + 2`` reads. ``parts()`` (if given)
+    returns the single readings a machine averaged into the last one; each must be valid too.
 
     Returns:
         ``(y, reads)``: the value and the readings taken.
@@ -164,6 +175,8 @@ def plausible_reading(
         y = float(y)
         if judge is not None:
             why = judge.invalid(y)
+            if why is None and parts is not None:
+                why = judge.invalid_parts(parts())
         else:
             why = None if math.isfinite(y) else f"non-finite reading {y}"
         if why is not None:

@@ -115,8 +115,9 @@ class EpicsMachine(GuardedMachine):
         n_reads: valid objective readings taken; n_invalid_readings: those retried or failed.
         control_limits: ``2 x d`` control limits of the setpoint PVs (NaN where none).
         objective_limits: ``(lower, upper)`` of the objective PV (``None``: it has none).
-        last_reading: ``{"stamps": [...], "stale_polls": n}`` of the last :meth:`read` (CA
-            timestamps of its readings, UNIX seconds; reads of a value not yet updated).
+        last_reading: ``{"stamps": [...], "values": [...], "stale_polls": n}`` of the last
+            :meth:`read` (CA timestamps of its readings, UNIX seconds; the readings averaged;
+            reads of a value not yet updated).
 
     Not thread-safe: use one machine from one thread. Use as a context manager (or call
     :meth:`close`) to release the CA connections.
@@ -368,6 +369,7 @@ class EpicsMachine(GuardedMachine):
         if math.isfinite(value):
             self._last_stamp = stamp
             info["stamps"].append(stamp)
+            info["values"].append(value)
         return value
 
     def _one_reading(self, info: dict) -> float:
@@ -403,7 +405,7 @@ class EpicsMachine(GuardedMachine):
             StaleReadingError: the objective PV did not update within ``stale_timeout``.
         """
         self._check_open()
-        info: dict = {"stamps": [], "stale_polls": 0}
+        info: dict = {"stamps": [], "values": [], "stale_polls": 0}
         self.last_reading = info
         total = 0.0
         for k in range(self.n_average):

@@ -229,3 +229,26 @@ def test_a_stuck_readback_never_breaks_the_step_limit(ioc, probe, ring, tmp_path
     stuck = probe.read(ioc.readback_pvs[1])
     assert end["final_knobs"][1] == stuck != start[1]
     assert worst_step(ioc, mark) <= 1 + 1e-9
+
+
+def test_a_glitch_averaged_into_the_range_is_still_discarded(ioc, probe, ring, tmp_path, capsys,
+                                                             with_optimize):  # fmt: skip
+    """With two readings averaged per evaluation, one reading of 150 mA/min (outside the PV's
+    range) averaged with a normal one lands inside the range (about 75): the single reading is
+    checked too, so the evaluation's reading is discarded and taken again, never the best."""
+    probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
+    probe.write(ioc.glitch_value_pv, 150.0)
+    machine = {"kind": "epics", "settle_time": 0.1, "timeout": 1.0, "stale_timeout": 1.0,
+               "n_average": 2, "average_interval": 0.06}  # fmt: skip
+    config = write_config(tmp_path, ioc, ring, machine=machine, budget=5)
+    with fault_at_read(3, lambda: probe.write(ioc.glitch_readings_pv, 1)):
+        code, captured = run(config, capsys)
+    assert code == 0, captured.err
+    log = read_log(tmp_path / "run.jsonl")
+    assert len(log.discarded) == 1 and 50.0 < log.discarded[0]["y"] < 100.0
+    assert (
+        "reading 150 outside the objective range [0, 100] (reading 1 of 2 averaged)"
+        in (log.discarded[0]["reason"])
+    )
+    assert float(log.Y().max()) < 5.0 and log.evaluations[2]["reads"] == 2
+    assert torch.equal(probe.read_many(ioc.setpoint_pvs[:2]), start_of(ring))
