@@ -40,8 +40,9 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    range ``objective_range`` (default: the machine's ``objective_limits``, for EPICS the
    objective PV's DRVL/DRVH, else LOPR/HOPR) is discarded (a ``discarded`` record) and read
    again; so is an averaged reading one of whose single readings is (the machine's
-   ``last_reading["values"]``: an average would dilute a glitch into the range). With the reading noise :math:`\sigma` stated (``noise``), a reading more than
-   :math:`5 s` from the median of the run's accepted readings,
+   ``last_reading["values"]``: an average would dilute a glitch into the range). With the
+   reading noise :math:`\sigma` stated (``noise``), a reading more than :math:`5 s` from the
+   median of the run's accepted readings,
    :math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` (from the 5th reading; :math:`s = \sigma`
    before), is read again at the same setting and kept only if the re-read agrees within
    :math:`4\sqrt2\,\sigma` (the value is their mean); otherwise it is discarded (logged). A
