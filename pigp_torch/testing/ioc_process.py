@@ -199,7 +199,8 @@ def start_sim_ioc(
     Launches ``python -m pigp_torch.testing.ioc`` with the server bound to the loopback interface
     and ``port`` (default: a free one, so parallel runs do not collide), waits (at most
     ``startup_timeout`` s) for its ready line and for its PVs to answer over CA, and stops it
-    (SIGTERM, then SIGKILL) when the block ends, also on errors.
+    (SIGTERM, then SIGKILL) when the block ends, also on errors. The IOC keeps a put log (every
+    setpoint put it accepted) in a temporary file, read with :meth:`SimIOCProcess.puts`.
 
     With ``set_client_env`` (default) the block runs with ``EPICS_CA_ADDR_LIST=127.0.0.1:port``,
     ``EPICS_CA_AUTO_ADDR_LIST=NO`` in ``os.environ`` (restored afterwards), so caproto clients of
