@@ -71,12 +71,15 @@ def move(
             on_set(x, k, len(steps))
         try:
             machine.set(x.clone())
-        except ReadbackError as err:
+        except ReadbackError as err:  # raised after the puts were acknowledged
+            if on_ack is not None:
+                on_ack(x)
             if readback_errors is None:
                 raise
             readback_errors.append(f"{type(err).__name__}: {err}")
-        if on_ack is not None:
-            on_ack(x)
+        else:
+            if on_ack is not None:
+                on_ack(x)
         previous = x
     return len(steps)
 
