@@ -78,11 +78,12 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one abandons the restore: reported
    as not restored, with what is known).
    With ``restore="best"`` the knobs are ramped to the best observed point and it is read
-   again, 3 fresh readings; it is confirmed if their mean is no worse than the best reading by
-   more than :math:`4 s\sqrt{1 + 1/3}` (:math:`s = \sigma`, else 1.4826 MAD of the run's
-   readings). If it does not reproduce, or cannot be reached, the run says so (a warning and a
-   ``notice`` record) and restores the initial knobs instead
-   (``restored_to = "initial (best not confirmed)"``).
+   again, 3 fresh readings; it is confirmed if their mean is no worse than the best of the
+   run's :math:`N` readings by more than :math:`s(\sqrt{2\ln N} + 4\sqrt{1 + 1/3})`
+   (:math:`s = \sigma`; without it a rough scale from the readings: see
+   :func:`~pigp_torch.loop.readings.confirm_best`). If it does not reproduce, or cannot be
+   reached, the run says so (a warning and a ``notice`` record) and restores the initial knobs
+   instead (``restored_to = "initial (best not confirmed)"``).
 6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
    dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
    restore, then re-raise; a SIGHUP that was ignored when the run started (``nohup``) stays

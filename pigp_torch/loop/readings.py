@@ -210,7 +210,7 @@ def plausible_reading(
 #: Fresh readings taken at the best point before the knobs are left there (``restore: best``).
 CONFIRM_READS = 3
 #: The best point reproduces if the mean of those readings is no worse than the best reading
-#: by more than this many :math:`s\sqrt{1 + 1/m}`.
+#: by more than :math:`s(\sqrt{2\ln N} + C\sqrt{1 + 1/m})`, :math:`C` this.
 CONFIRM_C = 4.0
 
 
@@ -224,12 +224,18 @@ def confirm_best(
     r"""Read the best point again ``n`` times (``take()``, the knobs already there) and say
     whether it reproduces.
 
-    With :math:`\bar y` the mean of the :math:`m = n` fresh readings, the point is confirmed if
-    :math:`\bar y` is not worse than the best reading :math:`y^*` by more than
-    :math:`C s \sqrt{1 + 1/m}` (:data:`CONFIRM_C` = 4), where :math:`s` is the stated noise
-    :math:`\sigma`, else :math:`1.4826\,\mathrm{MAD}` of the run's readings, else 0 (then only an
-    exact repeat confirms). A glitch that became the best does not reproduce; a genuine best,
-    read high by its noise, does.
+    With :math:`\bar y` the mean of the :math:`m = n` fresh readings and :math:`N` the run's
+    readings, the point is confirmed if :math:`\bar y` is not worse than the best reading
+    :math:`y^*` by more than
+
+    .. math:: s \left(\sqrt{2 \ln N} + C \sqrt{1 + 1/m}\right), \qquad C = 4,
+
+    the first term the upward error to expect of the best of :math:`N` noisy readings (the best
+    reading is read high by its noise), the second the spread of the difference. :math:`s` is
+    the stated noise :math:`\sigma`; without it, the larger of :math:`1.4826\,\mathrm{MAD}` of
+    the run's readings and the standard deviation of the fresh ones (a rough scale: state the
+    noise with ``restore="best"``). A glitch that became the best does not reproduce; a
+    genuine best does.
 
     Returns:
         ``{"confirmed", "readings", "mean", "best", "tolerance", "message"}``; ``"abandoned"``
@@ -237,15 +243,7 @@ def confirm_best(
         failed (then not confirmed).
     """
     readings: list[float] = []
-    s = 0.0
-    if judge is not None:
-        if judge.noise is not None:
-            s = judge.noise
-        elif len(judge.readings) >= 2:
-            y = torch.tensor(judge.readings, dtype=torch.float64)
-            s = float((y - y.median()).abs().median()) * MAD_TO_SIGMA
-    tol = CONFIRM_C * s * math.sqrt(1.0 + 1.0 / n)
-    out = {"confirmed": False, "readings": readings, "best": float(y_best), "tolerance": tol}
+    out = {"confirmed": False, "readings": readings, "best": float(y_best)}
     try:
         for _ in range(n):
             readings.append(float(take()))
@@ -255,6 +253,17 @@ def confirm_best(
     except Exception as err:
         out.update(error=f"{type(err).__name__}: {err}", message=f"no reading there ({err})")
         return out
+    run = list(judge.readings) if judge is not None else []
+    if judge is not None and judge.noise is not None:
+        s = judge.noise
+    else:
+        s = float(torch.tensor(readings, dtype=torch.float64).std()) if n >= 2 else 0.0
+        if len(run) >= 2:
+            y = torch.tensor(run, dtype=torch.float64)
+            s = max(s, float((y - y.median()).abs().median()) * MAD_TO_SIGMA)
+    selection = math.sqrt(2.0 * math.log(len(run))) if len(run) >= 2 else 0.0
+    tol = s * (selection + CONFIRM_C * math.sqrt(1.0 + 1.0 / n))
+    out["tolerance"] = tol
     mean = sum(readings) / n
     worse = (y_best - mean) if maximize else (mean - y_best)
     out.update(mean=mean, confirmed=bool(worse <= tol))

@@ -114,7 +114,7 @@ def test_a_huge_glitch_is_discarded_and_never_the_best(ioc, probe, ring, tmp_pat
     read again and confirmed before the knobs are left there; no put exceeds max_step."""
     probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
     mark = ioc.n_puts()
-    config = write_config(tmp_path, ioc, ring, restore="best")
+    config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04)
     with fault_at_read(3, lambda: probe.write(ioc.glitch_readings_pv, 2)):
         code, captured = run(config, capsys)
     assert code == 0, captured.err

@@ -3,6 +3,8 @@ far from the run's own, a genuine improvement kept, and the best point confirmed
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -113,14 +115,20 @@ def test_an_unconfirmed_best_restores_the_initial_knobs(tmp_path):
 
 
 def test_confirm_best_tolerance():
-    """Confirmed iff the mean of 3 fresh readings is no worse than the best by more than
-    4 sigma sqrt(1 + 1/3); one-sided (better is fine), minimize mirrored."""
+    """Confirmed iff the mean of 3 fresh readings is no worse than the best of N readings by
+    more than sigma (sqrt(2 ln N) + 4 sqrt(1 + 1/3)); one-sided (better is fine), minimize
+    mirrored."""
     j = ReadingJudge(noise=SIGMA)
     tol = 4 * SIGMA * (4 / 3) ** 0.5
     assert confirm_best(lambda: 1.0 - 0.99 * tol, 1.0, j, True)["confirmed"]
     assert not confirm_best(lambda: 1.0 - 1.01 * tol, 1.0, j, True)["confirmed"]
     assert confirm_best(lambda: 2.0, 1.0, j, True)["confirmed"]
     assert not confirm_best(lambda: 1.0 + 1.01 * tol, 1.0, j, False)["confirmed"]
+    # after N = 100 readings the best is read high by up to sqrt(2 ln N) sigma: allowed for
+    j100 = ReadingJudge(noise=SIGMA, readings=[1.0] * 100)
+    tol100 = SIGMA * ((2 * math.log(100)) ** 0.5 + 4 * (4 / 3) ** 0.5)
+    assert confirm_best(lambda: 1.0 - 0.99 * tol100, 1.0, j100, True)["confirmed"]
+    assert not confirm_best(lambda: 1.0 - 1.01 * tol100, 1.0, j100, True)["confirmed"]
 
 
 def test_a_genuine_optimization_is_not_taken_for_glitches(tmp_path):
