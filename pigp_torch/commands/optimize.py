@@ -57,7 +57,11 @@ DESCRIPTION = (
     "next step, and every setting is logged before it is written; the initial knobs are "
     "restored on Ctrl-C, SIGTERM, SIGHUP, errors and at the end (unless restore: best). "
     "One run per run log and per machine (lock files). --resume LOG continues a logged run "
-    "and restores to the knobs of its first start; --dry-run only prints the plan."
+    "and restores to the knobs of its first start; --dry-run only prints the plan. "
+    "Ramps and restores work on the SETPOINTS (never from readbacks; no put above max_step). "
+    "A reading counts only if finite, inside objective_range (default: the objective PV's "
+    "limits) and, with objective_noise, confirmed by a re-read when far from the run's own; "
+    "with restore: best the best point is read again first, or the initial knobs are restored."
 )
 
 EXIT_HELP = """rules:
@@ -86,8 +90,8 @@ exit status:
   2    invalid input (run file, a folder or unreadable file given as one, an existing run
        log, a run log that fails its hash chain, arguments); nothing moved
   3    the knobs were NOT restored (whatever ended the run, a full log disk included): the
-       last setpoint written is printed and logged when the log can be written (end
-       record: restored false, last_setpoint)
+       last setpoint the machine acknowledged is printed and logged when the log can be
+       written (end record: restored false, last_setpoint)
   4    refused: another run holds the run log or the machine (lock file named); nothing
        moved
   129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored

@@ -20,8 +20,10 @@ def print_plan(setup, records, out) -> None:
         machine = f"simulated ring (error seed {m.error_seed}, noise {m.noise:g}, seed {m.seed})"
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"
-    now = setup.machine.get().tolist()
     from pigp_torch.loop import effective_max_step
+    from pigp_torch.loop.moves import setpoints_of
+
+    now = setpoints_of(setup.machine).tolist()  # setpoints: what a ramp starts from
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)
@@ -44,6 +46,11 @@ def print_plan(setup, records, out) -> None:
         f"{floor}",
         file=out,
     )
+    opts = setup.options()
+    rng = opts.objective_range or getattr(setup.machine, "objective_limits", None)
+    noise = "not stated: no re-read of outliers" if opts.noise is None else f"{opts.noise:g}"
+    rng_text = "none" if rng is None else f"[{rng[0]:g}, {rng[1]:g}]"
+    print(f"  readings: objective range {rng_text}; reading noise {noise}", file=out)
     if setup.prior_info:
         p = setup.prior_info
         print(f"  prior {p['path']} (sha256 {p['sha256'][:16]}…)", file=out)
@@ -106,11 +113,15 @@ def print_summary(path: Path, out, log=None) -> dict | None:
         say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
                   "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
         if isinstance(last, list):
-            say(out, f"last setpoint written: {fmt_knobs(names, last)}")
+            say(out, f"last setpoint acknowledged: {fmt_knobs(names, last)}")
+        intended = end.get("last_intended")
+        if isinstance(intended, list) and intended != last:
+            say(out, f"last setpoint intended (never acknowledged): {fmt_knobs(names, intended)}")
         if isinstance(final, list):
             say(out, f"readback now: {fmt_knobs(names, final)}")
         elif final is not None:
             say(out, f"readback now: {final}")
+        _against_target(names, end, out)
     elif isinstance(final, list):
         say(out, f"knobs restored to {end.get('restored_to')}, readback: {fmt_knobs(names, final)}")
     elif final is not None:
@@ -123,6 +134,24 @@ def print_summary(path: Path, out, log=None) -> dict | None:
     return end
 
 
+def _against_target(names, end: dict, out) -> None:
+    """Per knob: the restore target, the setpoint and the readback at the end, and how far
+    each is from the target (what is known when the restore did not finish)."""
+    target, sp, rb = end.get("restore_target"), end.get("final_setpoints"), end.get("final_knobs")
+    if not isinstance(target, list):
+        return
+    cols = [(k, v) for k, v in (("setpoint", sp), ("readback", rb)) if isinstance(v, list)]
+    head = f"  {'knob':<14}{'target':>12}" + "".join(f"{k:>12}{k[:2] + '-target':>13}"
+                                                     for k, _ in cols)  # fmt: skip
+    say(out, "the knobs against the restore target:")
+    say(out, head)
+    for i, n in enumerate(names):
+        line = f"  {n:<14}{target[i]:>12.6g}"
+        for _, v in cols:
+            line += f"{v[i]:>12.6g}{v[i] - target[i]:>13.3g}"
+        say(out, line)
+
+
 def print_resume_state(setup, records, out) -> None:
     """Where the knobs stand against the restore target (the first start's initial knobs) and
     the last commanded setting, and how many ramp steps away they are."""
@@ -133,8 +162,10 @@ def print_resume_state(setup, records, out) -> None:
     initial = records.initial_knobs
     if initial is None:
         return
+    from pigp_torch.loop.moves import setpoints_of
+
     names = setup.config.knob_names
-    now = setup.machine.get().tolist()
+    now = setpoints_of(setup.machine).tolist()
     intent = records.last_intent
     last = intent["x"] if intent else None
     say(out, "resume: the knobs now against the initial knobs of the first start (the restore "

@@ -194,6 +194,11 @@ class RunConfig(_Section):
             machine is given none of its own, so this is the total).
         retry_interval: seconds before each extra read attempt.
         objective_floor: abort when a reading falls below this (``None``: no floor).
+        objective_range: ``[lower, upper]`` physical range of a reading; one outside is
+            discarded and read again (``None``: the objective PV's DRVL/DRVH or LOPR/HOPR).
+        objective_noise: noise (standard deviation) of one reading, objective units; a reading
+            far from the run's own is then re-read and kept only if it repeats (``None``: the
+            simulated machine's noise, else the prior's; with neither that rule is off).
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
@@ -213,6 +218,8 @@ class RunConfig(_Section):
     read_retries: Integer = Field(2, ge=0)
     retry_interval: Number = Field(0.1, ge=0.0)
     objective_floor: Number | None = None
+    objective_range: tuple[Number, Number] | None = None
+    objective_noise: Number | None = Field(None, gt=0.0)
     readback_tolerance: Number = Field(1e-3, ge=0.0)
     restore_attempts: Integer = Field(3, ge=1, le=100)
     restore_interval: Number = Field(1.0, ge=0.0)
@@ -255,6 +262,9 @@ class RunConfig(_Section):
     @model_validator(mode="after")
     def _check_run(self) -> RunConfig:
         names = list(self.knobs)
+        rng = self.objective_range
+        if rng is not None and not rng[0] < rng[1]:
+            raise ValueError(f"objective_range: lower {rng[0]} must be below upper {rng[1]}")
         if isinstance(self.max_step, dict):
             _same_knobs("max_step", self.max_step, names)
             bad = [k for k, v in self.max_step.items() if not v > 0]

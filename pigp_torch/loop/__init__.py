@@ -16,8 +16,13 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    ``max_step``), measured from the previous setting sent, *before* ``machine.set`` is called —
    on top of whatever the machine itself checks and of the optimizer's own rules (BayesOpt's trust
    box). A setting that breaks a rule is refused with ``ValueError`` and the run ends as below.
-2. *How a proposal is reached* (``moves``). The start point, the first point after a resume and
-   every restore are always reached by a ramp: the move :math:`\Delta` is cut into
+2. *How a proposal is reached* (``moves``). Everything happens in *setpoint space*: a move
+   starts from the machine's setpoints (``setpoints()``, read from the control system; else its
+   ``last_acknowledged`` setting; only a machine with neither, from ``get()``), never from its
+   readbacks, which are only checked against the setpoints (a readback offset or a stuck
+   readback cannot widen a step or move the restore target). The start point, the first point
+   after a resume and every restore are always reached by a ramp: the move :math:`\Delta` is
+   cut into
    :math:`n = \lceil \max_i |\Delta_i| / (0.99\, m_i) \rceil` equal steps on the segment (all
    inside the convex box; the 1 % margin leaves room for a machine that measures the step from
    readbacks sitting within their tolerance of the setpoints). With ``moves="ramp"`` every
@@ -31,6 +36,18 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    ``read_retries`` times, ``retry_interval`` seconds apart; then the run aborts with
    ``ReadError``. (Give a machine that retries on its own, like ``EpicsMachine``, zero retries
    of its own, or the two counts multiply.)
+   *Plausible readings* (:mod:`~pigp_torch.loop.readings`): a reading outside the physical
+   range ``objective_range`` (default: the machine's ``objective_limits``, for EPICS the
+   objective PV's DRVL/DRVH, else LOPR/HOPR) is discarded (a ``discarded`` record) and read
+   again; so is an averaged reading one of whose single readings is (the machine's
+   ``last_reading["values"]``: an average would dilute a glitch into the range). With the
+   reading noise :math:`\sigma` stated (``noise``), a reading more than :math:`5 s` from the
+   median of the run's accepted readings,
+   :math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` (from the 5th reading; :math:`s = \sigma`
+   before), is read again at the same setting and kept only if the re-read agrees within
+   :math:`4\sqrt2\,\sigma` (the value is their mean); otherwise it is discarded (logged). A
+   genuine improvement repeats, a glitch does not; a discarded reading never becomes an
+   evaluation or the best.
    *Readings checked against the machine's state* (``check_readings``, default on): the knob
    readbacks (``get()``) must lie within the readback tolerance of the setting before *and*
    after each reading (the machine's ``tolerance`` when it has one, else ``readback_tol`` of
@@ -45,16 +62,28 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
    (``last_reading``) is stored with the evaluation.
 4. *Objective floor.* With ``objective_floor`` set, a valid reading below it is recorded, then the
    run aborts with :class:`RunAborted` (the beam may be gone or being lost).
-5. *Restore.* The initial knobs — those found at the start (``get()``), or on a resume those
-   logged by the run's *first* start — are put back, by a ramp, when the run ends with any
-   exception (a machine error, a refused setting, a bug, ``KeyboardInterrupt`` — Ctrl-C — SIGTERM
-   or SIGHUP), and at the end of a completed run unless ``restore="best"`` (the best observed
-   point is set) or ``restore="none"``. The target is verified by readback: ``get()`` must be
-   within ``readback_tol`` of it. A failed attempt is retried, ``restore_attempts`` in all,
-   ``restore_interval`` seconds apart (each attempt ramps from where the knobs then are); the
-   end record says whether the knobs were restored and holds the last setpoint written
-   (``last_setpoint``). While restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one
-   abandons the restore).
+5. *Restore.* The initial knobs — the SETPOINTS found at the start (rule 2), or on a resume
+   those logged by the run's *first* start — are put back, by a ramp, when the run ends with
+   any exception (a machine error, a refused setting, a bug, ``KeyboardInterrupt`` — Ctrl-C —
+   SIGTERM or SIGHUP), and at the end of a completed run unless ``restore="best"`` or
+   ``restore="none"``. A restoring ramp goes on through a readback that does not follow (the
+   puts are still acknowledged one by one, each within the step limit), then the result is
+   verified: the setpoints (where the machine has ``setpoints()``) equal to the target, and
+   every readback within ``readback_tol`` of its range of the target — or of the readback
+   found at the start, for a knob that already read off its setpoint then. A failed attempt is
+   retried, ``restore_attempts`` in all, ``restore_interval`` seconds apart (each ramps from
+   the setpoints then held); the end record says whether the knobs were restored, the target
+   (``restore_target``), the setpoints and readbacks at the end, and the last setpoint the
+   machine ACKNOWLEDGED (``last_setpoint``; ``last_intended`` the last one sent). While
+   restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one abandons the restore: reported
+   as not restored, with what is known).
+   With ``restore="best"`` the knobs are ramped to the best observed point and it is read
+   again, 3 fresh readings; it is confirmed if their mean is no worse than the best of the
+   run's :math:`N` readings by more than :math:`s(\sqrt{2\ln N} + 4\sqrt{1 + 1/3})`
+   (:math:`s = \sigma`; without it a rough scale from the readings: see
+   :func:`~pigp_torch.loop.readings.confirm_best`). If it does not reproduce, or cannot be
+   reached, the run says so (a warning and a ``notice`` record) and restores the initial knobs
+   instead (``restored_to = "initial (best not confirmed)"``).
 6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
    dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
    restore, then re-raise; a SIGHUP that was ignored when the run started (``nohup``) stays

@@ -3,6 +3,7 @@ then the restore and the end record)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import warnings
 from collections.abc import Callable
@@ -14,13 +15,16 @@ import torch
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch._utils import utc_now as _utc_now
 from pigp_torch.loop.moves import (
+    averaged_parts,
     checked_read,
     effective_max_step,
     move,
     read,
     restore_knobs,
+    setpoints_of,
 )
 from pigp_torch.loop.options import RunOptions
+from pigp_torch.loop.readings import ReadingJudge, confirm_best
 from pigp_torch.loop.signals import SignalGuard, classify
 from pigp_torch.loop.steps import best_row, knob_columns, logged_initial_knobs, run_steps
 from pigp_torch.machine.base import Machine, check_setting
@@ -117,7 +121,12 @@ def optimize(
                 "raise the budget to continue the run"
             )
 
-    x_found = torch.as_tensor(objective.get(), dtype=DTYPE).clone() if is_machine else None
+    # the restore target: the SETPOINTS found at the start (never readbacks); the readbacks
+    # found are the reference of a knob that already read off its setpoint
+    x_found = setpoints_of(objective) if is_machine else None
+    rb_found = (
+        torch.as_tensor(objective.get(), dtype=DTYPE).reshape(-1).clone() if is_machine else None
+    )
     x_initial = x_found
     logged_initial = logged_initial_knobs(resume)
     if is_machine and logged_initial is not None:
@@ -160,7 +169,11 @@ def optimize(
             read_tol = torch.as_tensor(machine_tol, dtype=DTYPE).expand(d).clone()
         else:
             read_tol = opts.readback_tol * (bounds[1] - bounds[0])
-    sent = {"last": None, "step": None, "purpose": "evaluation"}
+    sent = {"last": None, "acked": None, "step": None, "purpose": "evaluation"}
+    objective_range = opts.objective_range
+    if objective_range is None and is_machine:
+        objective_range = getattr(objective, "objective_limits", None)
+    judge = ReadingJudge(opts.noise, objective_range, readings=[r["y"] for r in logged])
 
     def on_set(x: torch.Tensor, k: int, n: int) -> None:
         if log is not None:
@@ -173,21 +186,37 @@ def optimize(
                 warnings.warn(f"could not log the restore's intent: {err!r}", stacklevel=2)
         sent["last"] = x.tolist()
 
+    def on_ack(x: torch.Tensor) -> None:
+        sent["acked"] = x.tolist()
+
+    def last_acknowledged():
+        """The setpoints the machine last confirmed (its own account where it keeps one)."""
+        acked = getattr(objective, "last_acknowledged", None)
+        return acked.tolist() if isinstance(acked, torch.Tensor) else sent["acked"]
+
+    def on_discard_at(step):
+        def on_discard(reason: str, y: float) -> None:
+            if log is not None:
+                log.write("discarded", step=step, y=y, reason=reason, time=_utc_now())
+
+        return on_discard
+
     def evaluate(x: torch.Tensor, ramp: bool, step: int) -> tuple[float, int]:
         if is_machine:
             sent["step"], sent["purpose"] = step, "evaluation"
-            move(objective, x, bounds, limit, ramp=ramp, on_set=on_set)
+            move(objective, x, bounds, limit, ramp=ramp, on_set=on_set, on_ack=on_ack)
+            on_discard = on_discard_at(step)
             if not opts.check_readings:
-                return read(objective.read, opts.read_retries, opts.retry_interval)
-
-            def on_discard(reason: str, y: float) -> None:
-                if log is not None:
-                    log.write("discarded", step=step, y=y, reason=reason, time=_utc_now())
-
+                return read(
+                    objective.read, opts.read_retries, opts.retry_interval, judge, on_discard,
+                    lambda: averaged_parts(objective),
+                )  # fmt: skip
             return checked_read(
-                objective, x, read_tol, opts.read_retries, opts.retry_interval, on_discard
+                objective, x, read_tol, opts.read_retries, opts.retry_interval, on_discard, judge
             )
-        return read(lambda: objective(x), opts.read_retries, opts.retry_interval)
+        return read(
+            lambda: objective(x), opts.read_retries, opts.retry_interval, judge, on_discard_at(step)
+        )
 
     own_log = log is not None and not isinstance(log, RunLog)
     if own_log:
@@ -223,6 +252,7 @@ def optimize(
                 log=log,
                 x_initial=x_initial,
                 x_found=x_found,
+                rb_found=rb_found,
                 reading_info=(lambda: getattr(objective, "last_reading", None)),
                 callback=callback,
                 progress=progress,
@@ -238,30 +268,88 @@ def optimize(
         best = best_row(rows, names, maximize)
         restored_to, final_knobs, restore_error = "none", None, None
         restored, attempts_made, attempt_errors = True, 0, []
+        target, confirmation, final_setpoints = None, None, None
         if is_machine:
             # initial knobs after any failure; initial / best / none after a completed run
             mode = (
                 opts.restore if error is None else ("none" if opts.restore == "none" else "initial")
             )
-            if mode != "none":
-                target = x_initial if mode == "initial" else torch.tensor(best["x"], dtype=DTYPE)
-                sent["purpose"], sent["step"] = f"restore {mode}", None
-                restore_error, attempts_made, attempt_errors = restore_knobs(
+            if mode == "best" and best is None:
+                mode = "initial"
+            # a knob whose readback was off its setpoint at the start may read off it again
+            reference = rb_found if torch.equal(x_initial, x_found) else None
+
+            def restore_to(goal, purpose, ref):
+                sent["purpose"], sent["step"] = purpose, None
+                return restore_knobs(
                     objective,
-                    target,
+                    goal,
                     bounds,
                     limit,
                     attempts=opts.restore_attempts,
                     interval=opts.restore_interval,
                     readback_tol=opts.readback_tol,
                     on_set=on_set,
+                    on_ack=on_ack,
+                    reference=ref,
                 )
-                restored = restore_error is None
-                restored_to = mode if restored else f"{mode} (failed)"
+
+            if mode == "best":
+                target = torch.tensor(best["x"], dtype=DTYPE)
+                restore_error, attempts_made, attempt_errors = restore_to(
+                    target, "restore best", None
+                )
+                if restore_error is None:
+
+                    def confirm_discard(reason: str, y: float) -> None:
+                        on_discard_at(best["step"])(f"confirming the best point: {reason}", y)
+
+                    confirmation = confirm_best(
+                        lambda: checked_read(
+                            objective, target, read_tol, opts.read_retries, opts.retry_interval,
+                            confirm_discard, ReadingJudge(None, objective_range),
+                        )[0],
+                        best["y"], judge, maximize,
+                    )  # fmt: skip
+                    if confirmation.get("abandoned"):  # a second signal: stop here
+                        restore_error = KeyboardInterrupt(confirmation["message"])
+                if restore_error is None and confirmation["confirmed"]:
+                    restored_to = "best (confirmed)"
+                elif not isinstance(restore_error, KeyboardInterrupt):
+                    why = (
+                        f"the best point did not reproduce: {confirmation['message']}"
+                        if restore_error is None
+                        else f"the knobs could not be set to the best point: {restore_error}"
+                    )
+                    warnings.warn(f"{why}; restoring the initial knobs instead", stacklevel=2)
+                    if log is not None:
+                        message = f"{why}; restoring the initial knobs instead"
+                        with contextlib.suppress(Exception):
+                            log.write("notice", step=best["step"], time=_utc_now(),
+                                      message=message)  # fmt: skip
+                    target = x_initial
+                    restore_error, more, errs = restore_to(target, "restore initial", reference)
+                    attempts_made, attempt_errors = attempts_made + more, attempt_errors + errs
+                    restored_to = "initial (best not confirmed)"
+                else:
+                    restored_to = "best"
+            elif mode == "initial":
+                target = x_initial
+                restore_error, attempts_made, attempt_errors = restore_to(
+                    target, "restore initial", reference
+                )
+                restored_to = "initial"
+            restored = restore_error is None
+            if not restored:
+                restored_to = f"{restored_to} (failed)"
             try:
                 final_knobs = torch.as_tensor(objective.get(), dtype=DTYPE).reshape(-1).tolist()
             except Exception as err:  # the readback itself failed: say so in the log
                 final_knobs = f"unavailable: {type(err).__name__}: {err}"
+            try:
+                final_setpoints = setpoints_of(objective).tolist()
+            except Exception as err:
+                final_setpoints = f"unavailable: {type(err).__name__}: {err}"
         if error is None and restore_error is not None:
             status, reason = classify(restore_error)
             reason = f"restoring the knobs failed: {reason}"
@@ -271,8 +359,13 @@ def optimize(
                 end = {"restored_to": restored_to, "final_knobs": final_knobs}
                 end.update(n_evaluations=len(rows), best=best)
                 if is_machine:
-                    end.update(restored=restored, last_setpoint=sent["last"])
+                    end.update(restored=restored, last_setpoint=last_acknowledged())
+                    end.update(last_intended=sent["last"], final_setpoints=final_setpoints)
                     end.update(restore_attempts=attempts_made)
+                    if target is not None:
+                        end["restore_target"] = target.tolist()
+                    if confirmation is not None:
+                        end["best_confirmation"] = confirmation
                     if attempt_errors:
                         end["restore_errors"] = attempt_errors
                 if guard.deferred:
@@ -294,7 +387,8 @@ def optimize(
         if restore_error is not None:
             warnings.warn(
                 f"could not restore the initial knobs after a failure ({attempts_made} "
-                f"attempt(s)): {restore_error!r}; last setpoint written: {sent['last']}",
+                f"attempt(s)): {restore_error!r}; last setpoint acknowledged: "
+                f"{last_acknowledged()}",
                 stacklevel=2,
             )
         raise error

@@ -11,12 +11,15 @@ from collections.abc import Callable
 import torch
 
 from pigp_torch._utils import DTYPE, max_step_tensor
-from pigp_torch.machine.base import check_setting, ramp_steps
-from pigp_torch.machine.errors import MachineError, ReadError
+from pigp_torch.loop.readings import plausible_reading
+from pigp_torch.machine.base import check_setting, ramp_steps, setpoints_of
+from pigp_torch.machine.errors import MachineError, ReadbackError
 
 #: Ramp steps are planned at this fraction of the step limit: a machine that measures the step
 #: from its readbacks (``EpicsMachine``) sees the readback within its tolerance of the setpoint.
 RAMP_FRACTION = 0.99
+#: A setpoint equals its target within this fraction of the knob's range (round-off only).
+SETPOINT_TOL = 1e-9
 
 
 def effective_max_step(machine, bounds: torch.Tensor, max_step) -> torch.Tensor | None:
@@ -34,15 +37,30 @@ def effective_max_step(machine, bounds: torch.Tensor, max_step) -> torch.Tensor 
     return out
 
 
-def move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool, on_set=None) -> int:
+def move(
+    machine,
+    target: torch.Tensor,
+    bounds,
+    limit,
+    *,
+    ramp: bool,
+    on_set=None,
+    on_ack=None,
+    readback_errors: list[str] | None = None,
+) -> int:
     r"""Send ``target`` to ``machine``: one checked ``set``, or a checked ramp; returns the sets.
 
-    Every setting passes :func:`check_setting` (bounds; step from the previous setting sent, the
-    first measured from ``machine.get()``) before ``machine.set``; ``on_set(x, k, n)`` (if given)
-    is called just before the ``k``-th of ``n`` sets (the intent record).
+    The move starts from the machine's setpoints (:func:`setpoints_of`: what the IOC holds,
+    never a readback). Every setting passes :func:`check_setting` (bounds; step from the
+    previous setting) before ``machine.set``; ``on_set(x, k, n)`` (if given) is called just
+    before the ``k``-th of ``n`` sets (the intent record), ``on_ack(x)`` after a set that
+    returned (its puts acknowledged). With ``readback_errors`` (a list; used by the restore) a
+    :class:`~pigp_torch.machine.errors.ReadbackError` — raised by a machine after its puts
+    completed, when a readback does not follow — is appended there and the ramp goes on, so the
+    setpoints still reach ``target`` step by step.
     """
     target = check_setting(target, bounds)
-    previous = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
+    previous = setpoints_of(machine)
     planned = limit * RAMP_FRACTION if ramp and limit is not None else None
     steps = ramp_steps(previous, target, planned)
     for k, x in enumerate(steps, start=1):
@@ -51,15 +69,49 @@ def move(machine, target: torch.Tensor, bounds, limit, *, ramp: bool, on_set=Non
         x = check_setting(x, bounds, current=previous, max_step=limit)
         if on_set is not None:
             on_set(x, k, len(steps))
-        machine.set(x.clone())
+        try:
+            machine.set(x.clone())
+        except ReadbackError as err:  # raised after the puts were acknowledged
+            if on_ack is not None:
+                on_ack(x)
+            if readback_errors is None:
+                raise
+            readback_errors.append(f"{type(err).__name__}: {err}")
+        else:
+            if on_ack is not None:
+                on_ack(x)
         previous = x
     return len(steps)
 
 
-def verify_readback(machine, target: torch.Tensor, bounds, readback_tol: float) -> torch.Tensor:
+def verify_readback(
+    machine, target: torch.Tensor, bounds, readback_tol: float, reference=None
+) -> torch.Tensor:
+    r"""Check that the knobs are at ``target``: the setpoints (where the machine has
+    ``setpoints()``) equal to ``target`` within :data:`SETPOINT_TOL` of each range, and every
+    readback within ``readback_tol`` of the range of ``target`` — or, with ``reference`` (the
+    readbacks found at the start, when ``target`` is where the run found the setpoints), of its
+    reference (a readback offset the knob already had). Returns the readbacks.
+
+    Raises:
+        MachineError: naming the knobs, their setpoints or readbacks, and the target.
+    """
+    width = bounds[1] - bounds[0]
+    setpoints = getattr(machine, "setpoints", None)
+    if callable(setpoints):
+        sp = torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1)
+        bad = ((sp - target).abs() > SETPOINT_TOL * width).nonzero().flatten().tolist()
+        if bad:
+            raise MachineError(
+                f"setpoint check failed on knob indices {bad}: setpoints {sp[bad].tolist()}, "
+                f"target {target[bad].tolist()}"
+            )
     got = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
-    tol = readback_tol * (bounds[1] - bounds[0])
-    bad = ((got - target).abs() > tol).nonzero().flatten().tolist()
+    tol = readback_tol * width
+    off = (got - target).abs() > tol
+    if reference is not None:
+        off &= (got - torch.as_tensor(reference, dtype=DTYPE)).abs() > tol
+    bad = off.nonzero().flatten().tolist()
     if bad:
         raise MachineError(
             f"readback check failed on knob indices {bad}: read {got[bad].tolist()}, "
@@ -68,22 +120,20 @@ def verify_readback(machine, target: torch.Tensor, bounds, readback_tol: float) 
     return got
 
 
-def read(measure: Callable[[], float], retries: int, interval: float) -> tuple[float, int]:
-    """A valid (finite) reading and the number of attempts it took; ``ReadError`` after
-    ``retries + 1`` invalid ones (``interval`` seconds apart)."""
-    problems = []
-    for attempt in range(1, retries + 2):
-        if attempt > 1 and interval > 0:
-            time.sleep(interval)
-        try:
-            y = float(measure())
-        except (ReadError, TimeoutError) as err:
-            problems.append(f"{type(err).__name__}: {err}")
-            continue
-        if math.isfinite(y):
-            return y, attempt
-        problems.append(f"non-finite reading {y}")
-    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+def read(
+    measure: Callable[[], float],
+    retries: int,
+    interval: float,
+    judge=None,
+    on_discard=None,
+    parts=None,
+) -> tuple[float, int]:
+    """A valid reading and the number of attempts it took (:func:`plausible_reading` with
+    ``judge``, default: finite only, and ``parts``); ``ReadError`` after ``retries + 1``
+    invalid ones (``interval`` seconds apart)."""
+    return plausible_reading(
+        measure, judge, retries, interval, on_discard or (lambda reason, y: None), parts
+    )
 
 
 def machine_state(machine) -> dict:
@@ -102,16 +152,63 @@ def off_setting(state: dict, x: torch.Tensor, tol: torch.Tensor) -> list[int]:
     return ((state["readback"] - x).abs() > tol).nonzero().flatten().tolist()
 
 
-def checked_read(
-    machine, x: torch.Tensor, tol: torch.Tensor, retries: int, interval: float, on_discard
-) -> tuple[float, int]:
-    r"""A valid reading of ``machine`` at setting ``x``, checked against the machine's state.
+def checked_take(machine, x: torch.Tensor, tol: torch.Tensor, on_discard) -> float | None:
+    r"""One reading of ``machine`` at setting ``x``, checked against the machine's state.
 
-    Before each attempt the readbacks must be within ``tol`` of ``x`` (else ``MachineError``);
-    after it, the readbacks must still be there, the setpoints unchanged and no connection lost.
-    A reading that fails the after-check is reported to ``on_discard(reason, y)`` and taken
-    again (within the ``retries + 1`` attempts) if the knobs are still at ``x``; otherwise
-    ``MachineError``. Invalid readings are retried as in :func:`read`.
+    Before the reading the readbacks must be within ``tol`` of ``x`` (else ``MachineError``);
+    after it, the readbacks must still be there, the setpoints unchanged and no connection
+    lost. A reading that fails the after-check is reported to ``on_discard(reason, y)`` and
+    ``None`` is returned if the knobs are still at ``x`` (the caller reads again); otherwise
+    ``MachineError``. A read that raises ``ReadError``/``TimeoutError`` passes it on.
+    """
+    before = machine_state(machine)
+    off = off_setting(before, x, tol)
+    if off:
+        raise MachineError(
+            f"knobs {off} are not at the setting before the reading: readback "
+            f"{before['readback'][off].tolist()}, setting {x[off].tolist()}"
+        )
+    y = float(machine.read())
+    if not math.isfinite(y):
+        return y  # retried by the caller
+    after = machine_state(machine)
+    reasons = []
+    off = off_setting(after, x, tol)
+    if off:
+        reasons.append(
+            f"readbacks of knobs {off} left the setting during the reading "
+            f"(now {after['readback'][off].tolist()}, setting {x[off].tolist()})"
+        )
+    if "setpoint" in before and not torch.equal(before["setpoint"], after["setpoint"]):
+        changed = (before["setpoint"] != after["setpoint"]).nonzero().flatten().tolist()
+        reasons.append(
+            f"setpoints of knobs {changed} changed during the reading "
+            f"({before['setpoint'][changed].tolist()} -> {after['setpoint'][changed].tolist()})"
+        )
+    if after.get("disconnections", 0) != before.get("disconnections", 0):
+        n = after["disconnections"] - before["disconnections"]
+        reasons.append(f"{n} channel disconnection(s) during the reading")
+    if not reasons:
+        return y
+    reason = "; ".join(reasons)
+    on_discard(reason, y)
+    if off:
+        raise MachineError(f"reading discarded and the knobs moved: {reason}")
+    return None
+
+
+def checked_read(
+    machine,
+    x: torch.Tensor,
+    tol: torch.Tensor,
+    retries: int,
+    interval: float,
+    on_discard,
+    judge=None,
+) -> tuple[float, int]:
+    r"""A valid reading of ``machine`` at setting ``x``, checked against the machine's state
+    (:func:`checked_take`) and, with ``judge``, plausible
+    (:func:`~pigp_torch.loop.readings.plausible_reading`).
 
     Returns:
         ``(y, attempts)``.
@@ -120,50 +217,17 @@ def checked_read(
         MachineError: the knobs are not (or no longer) at ``x``.
         ReadError: no valid, consistent reading in ``retries + 1`` attempts.
     """
-    problems = []
-    for attempt in range(1, retries + 2):
-        if attempt > 1 and interval > 0:
-            time.sleep(interval)
-        before = machine_state(machine)
-        off = off_setting(before, x, tol)
-        if off:
-            raise MachineError(
-                f"knobs {off} are not at the setting before the reading: readback "
-                f"{before['readback'][off].tolist()}, setting {x[off].tolist()}"
-            )
-        try:
-            y = float(machine.read())
-        except (ReadError, TimeoutError) as err:
-            problems.append(f"{type(err).__name__}: {err}")
-            continue
-        if not math.isfinite(y):
-            problems.append(f"non-finite reading {y}")
-            continue
-        after = machine_state(machine)
-        reasons = []
-        off = off_setting(after, x, tol)
-        if off:
-            reasons.append(
-                f"readbacks of knobs {off} left the setting during the reading "
-                f"(now {after['readback'][off].tolist()}, setting {x[off].tolist()})"
-            )
-        if "setpoint" in before and not torch.equal(before["setpoint"], after["setpoint"]):
-            changed = (before["setpoint"] != after["setpoint"]).nonzero().flatten().tolist()
-            reasons.append(
-                f"setpoints of knobs {changed} changed during the reading "
-                f"({before['setpoint'][changed].tolist()} -> {after['setpoint'][changed].tolist()})"
-            )
-        if after.get("disconnections", 0) != before.get("disconnections", 0):
-            n = after["disconnections"] - before["disconnections"]
-            reasons.append(f"{n} channel disconnection(s) during the reading")
-        if not reasons:
-            return y, attempt
-        reason = "; ".join(reasons)
-        on_discard(reason, y)
-        problems.append(f"discarded: {reason}")
-        if off:
-            raise MachineError(f"reading discarded and the knobs moved: {reason}")
-    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+    return plausible_reading(
+        lambda: checked_take(machine, x, tol, on_discard), judge, retries, interval, on_discard,
+        parts=lambda: averaged_parts(machine),
+    )  # fmt: skip
+
+
+def averaged_parts(machine) -> list | None:
+    """The single readings a machine averaged into its last reading (``last_reading["values"]``
+    where it reports them, as ``EpicsMachine`` does), else ``None``."""
+    info = getattr(machine, "last_reading", None)
+    return info.get("values") if isinstance(info, dict) else None
 
 
 def restore_knobs(
@@ -176,10 +240,14 @@ def restore_knobs(
     interval: float,
     readback_tol: float,
     on_set,
+    on_ack=None,
+    reference=None,
 ) -> tuple[BaseException | None, int, list[str]]:
-    r"""Ramp ``machine`` to ``target`` and verify the readback (:func:`verify_readback`), up to
-    ``attempts`` times ``interval`` seconds apart (each attempt ramps from where the knobs then
-    are); a ``KeyboardInterrupt`` (a second signal) abandons it.
+    r"""Ramp ``machine``'s setpoints to ``target`` and verify them and the readbacks
+    (:func:`verify_readback`), up to ``attempts`` times ``interval`` seconds apart (each attempt
+    ramps from the setpoints the machine then holds); a readback that does not follow does not
+    stop a ramp (:func:`move` with ``readback_errors``), it fails the check at the end; a
+    ``KeyboardInterrupt`` (a second signal) abandons it.
 
     Returns:
         ``(error, attempts_made, attempt_errors)``: the last error (``None``: restored), the
@@ -188,16 +256,21 @@ def restore_knobs(
     error, made, errors = None, 0, []
     for attempt in range(1, attempts + 1):
         made = attempt
+        readback_errors: list[str] = []
         try:
-            move(machine, target, bounds, limit, ramp=True, on_set=on_set)
-            verify_readback(machine, target, bounds, readback_tol)
+            move(
+                machine, target, bounds, limit, ramp=True, on_set=on_set, on_ack=on_ack,
+                readback_errors=readback_errors,
+            )  # fmt: skip
+            verify_readback(machine, target, bounds, readback_tol, reference)
             return None, made, errors
         except KeyboardInterrupt as err:  # a second signal: abandon the restore
             errors.append(f"{type(err).__name__}: {err}")
             return err, made, errors
         except Exception as err:  # reported by the caller, never hides the run's error
             error = err
-            errors.append(f"{type(err).__name__}: {err}")
+            during = f" (during the ramp: {readback_errors[-1]})" if readback_errors else ""
+            errors.append(f"{type(err).__name__}: {err}{during}")
             if attempt < attempts and interval > 0:
                 try:
                     time.sleep(float(interval))

@@ -33,6 +33,11 @@ class RunOptions:
         restore_attempts: attempts at the restore (ramp and readback check, >= 1; default 3).
         restore_interval: seconds between those attempts (>= 0; default 1).
         check_readings: check every reading of a machine against its state (rule 3).
+        noise: the stated noise :math:`\sigma` of one reading (objective units, > 0): with it
+            a reading far from the run's own readings is re-read and kept only if it repeats
+            (:mod:`~pigp_torch.loop.readings`); ``None`` (default): that rule is off.
+        objective_range: ``(lower, upper)`` physical range of a reading; a reading outside it
+            is discarded (``None``: the machine's ``objective_limits``, if any).
 
     Raises:
         ValueError: a value out of its range (at construction).
@@ -49,6 +54,8 @@ class RunOptions:
     restore_attempts: int = 3
     restore_interval: float = 1.0
     check_readings: bool = True
+    noise: float | None = None
+    objective_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.restore not in RESTORE_MODES:
@@ -67,6 +74,15 @@ class RunOptions:
                 f"restore_attempts must be an integer >= 1, got {self.restore_attempts}"
             )
         _finite_nonnegative("restore_interval", self.restore_interval)
+        if self.noise is not None and not (0.0 < float(self.noise) < math.inf):
+            raise ValueError(f"noise must be positive and finite or None, got {self.noise}")
+        if self.objective_range is not None:
+            lo, hi = (float(v) for v in self.objective_range)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(
+                    f"objective_range must be finite with lower < upper, got {self.objective_range}"
+                )
+            object.__setattr__(self, "objective_range", (lo, hi))
         object.__setattr__(self, "read_retries", int(self.read_retries))
         object.__setattr__(self, "retry_interval", float(self.retry_interval))
         object.__setattr__(self, "readback_tol", float(self.readback_tol))

@@ -64,6 +64,7 @@ def run_steps(
     x_initial,
     x_found,
     reading_info,
+    rb_found=None,
     callback,
     progress,
     objective_floor,
@@ -75,6 +76,8 @@ def run_steps(
         extra = {}
         if x_found is not None and x_found is not x_initial:
             extra["found_knobs"] = x_found.tolist()
+        if rb_found is not None:  # the knobs above are setpoints; their readbacks then
+            extra["found_readbacks"] = rb_found.tolist()
         log.log_start(x_initial, budget=budget, first_step=first, **extra)
     bar = None
     if progress:

@@ -127,6 +127,11 @@ class GuardedMachine:
         """The current setting (``d`` float64, a copy)."""
         return self._x.clone()
 
+    @property
+    def last_acknowledged(self) -> torch.Tensor:
+        """The last setting applied (``d`` float64, a copy): the setpoints the machine holds."""
+        return self._x.clone()
+
     def read(self) -> float:  # pragma: no cover - abstract
         raise NotImplementedError
 
@@ -146,15 +151,29 @@ def ramp_steps(current: torch.Tensor, target: torch.Tensor, limit) -> list[torch
     return [target if k == n else current + delta * (k / n) for k in range(1, n + 1)]
 
 
+def setpoints_of(machine) -> torch.Tensor:
+    """Where a ramp starts: the machine's setpoints (``setpoints()``, read from the IOC), else
+    its last acknowledged setting (``last_acknowledged``), else ``get()`` — never a readback
+    where the machine tells setpoints from readbacks."""
+    setpoints = getattr(machine, "setpoints", None)
+    if callable(setpoints):
+        return torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1).clone()
+    acked = getattr(machine, "last_acknowledged", None)
+    if acked is not None:
+        return torch.as_tensor(acked, dtype=DTYPE).reshape(-1).clone()
+    return torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1).clone()
+
+
 def ramp(machine: Machine, target) -> int:
     r"""Move ``machine`` to ``target`` in equal steps that respect its ``max_step`` (if any):
-    the settings of :func:`ramp_steps`, one ``set`` each.
+    the settings of :func:`ramp_steps` from :func:`setpoints_of` (never from readbacks), one
+    ``set`` each.
 
     Returns:
         the number of ``set`` calls made.
     """
     target = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
-    current = torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)
+    current = setpoints_of(machine)
     steps = ramp_steps(current, target, getattr(machine, "max_step", None))
     for x in steps:
         machine.set(x)

@@ -19,6 +19,7 @@ loop then restores the initial knobs).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -171,12 +172,21 @@ class CaprotoAdapter:
             out.append((lo, hi, src))
         return out
 
-    def write_many(self, names: list[str], values: list[float], timeout: float) -> None:
-        """Write ``values`` to ``names`` in parallel and wait for every put completion."""
+    def write_many(
+        self, names: list[str], values: list[float], timeout: float, on_ack=None
+    ) -> None:
+        """Write ``values`` to ``names`` in parallel and wait for every put completion;
+        ``on_ack(i)`` (if given) is called for each put completed with success, as it arrives
+        (also when others never complete)."""
         values = [float(v) for v in values]
 
         def start(i, pv, cb, t):
-            pv.write([values[i]], wait=False, callback=cb, timeout=t, notify=True)
+            def done(response, cb=cb, i=i):
+                if on_ack is not None and response.status.success:
+                    on_ack(i)
+                cb(response)
+
+            pv.write([values[i]], wait=False, callback=done, timeout=t, notify=True)
 
         responses = self._wait_all(names, start, "put", timeout)
         failed = [n for n, r in zip(names, responses, strict=True) if not r.status.success]
@@ -184,9 +194,26 @@ class CaprotoAdapter:
             raise MachineError(f"puts to {failed} completed with an error status")
 
     def close(self) -> None:
-        """Disconnect the context if this adapter created it (idempotent)."""
+        """Disconnect the context if this adapter created it (idempotent), and release its
+        selectors' descriptors.
+
+        caproto's ``Context.disconnect`` stops the selector threads of the context and of its
+        (own, unshared) broadcaster and joins them, but never closes their ``epoll`` objects:
+        two file descriptors per context would leak in a long-lived process (a Badger
+        session opening a machine per run). They are closed here once their threads ended.
+        """
         if self._owns_context and self.context is not None:
-            self.context.disconnect()
+            context = self.context
+            broadcaster = getattr(context, "broadcaster", None)
+            context.disconnect()  # waits for its threads; the broadcaster's too (last listener)
+            for owner in (context, broadcaster):
+                thread_owner = getattr(owner, "selector", None)
+                if thread_owner is None:
+                    continue
+                thread = getattr(thread_owner, "thread", None)
+                if thread is None or not thread.is_alive():
+                    with contextlib.suppress(Exception):
+                        thread_owner.selector.close()
         self.context = None
         self._pvs = {}
 

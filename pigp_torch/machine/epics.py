@@ -8,10 +8,13 @@ Channel Access (CA), so :func:`pigp_torch.optimize` drives a control system exac
 
 1. the requested setting is checked *before anything is written*
    (:meth:`GuardedMachine.set <pigp_torch.machine.base.GuardedMachine.set>`:
-   :math:`\ell \le x \le h` and, with ``max_step``, :math:`|x - x_\mathrm{rb}| \le m` per knob,
-   where :math:`x_\mathrm{rb}` are the knob *readbacks* read just before);
+   :math:`\ell \le x \le h` and, with ``max_step``, :math:`|x - x_\mathrm{sp}| \le m` per knob,
+   where :math:`x_\mathrm{sp}` are the *setpoint* PVs read just before — the setpoints the IOC
+   holds, never the readbacks, so a readback offset or a stuck readback cannot widen a step);
 2. all setpoints are written in parallel with put-completion (``WriteNotify``) and every
-   completion must arrive within ``timeout``;
+   completion must arrive within ``timeout``; each completed put updates
+   :attr:`EpicsMachine.last_acknowledged` (per knob), so after a failure it holds what the IOC
+   really received;
 3. after ``settle_time`` the readbacks are polled (every 50 ms, for at most ``timeout``) until
    :math:`|x_\mathrm{rb} - x| \le \tau` for every knob, else :class:`ReadbackError`. The default
    tolerance is :math:`\tau_i = 10^{-6}(h_i - \ell_i) + 10^{-9}` (knob units): a relative part
@@ -29,9 +32,11 @@ every ``stale_poll`` seconds, for at most ``stale_timeout`` seconds, then
 A reading that is NaN/inf, times out or finds the channel disconnected is retried, up to
 ``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. **get** returns
 the knob readbacks read over CA at that moment (never a cached value); :meth:`setpoints` the
-setpoint PVs likewise. :attr:`EpicsMachine.disconnections` counts the channel disconnections
-seen since the machine connected (a reboot of the IOC, a network cut); the loop discards a reading
-during which it changed.
+setpoint PVs likewise. :attr:`EpicsMachine.objective_limits` is the objective PV's range
+(``DRVL``/``DRVH``, else ``LOPR``/``HOPR``; ``None`` where it has neither), which the loop takes
+as the default physical range of a reading. :attr:`EpicsMachine.disconnections` counts the
+channel disconnections seen since the machine connected (a reboot of the IOC, a network cut);
+the loop discards a reading during which it changed.
 
 **Control limits.** At connection the setpoint PVs' control limits (``DRVL``/``DRVH``, else the
 display limits ``LOPR``/``HOPR`` when the control limits are unset, i.e. both 0) are read; bounds
@@ -109,8 +114,10 @@ class EpicsMachine(GuardedMachine):
     Attributes:
         n_reads: valid objective readings taken; n_invalid_readings: those retried or failed.
         control_limits: ``2 x d`` control limits of the setpoint PVs (NaN where none).
-        last_reading: ``{"stamps": [...], "stale_polls": n}`` of the last :meth:`read` (CA
-            timestamps of its readings, UNIX seconds; reads of a value not yet updated).
+        objective_limits: ``(lower, upper)`` of the objective PV (``None``: it has none).
+        last_reading: ``{"stamps": [...], "values": [...], "stale_polls": n}`` of the last
+            :meth:`read` (CA timestamps of its readings, UNIX seconds; the readings averaged;
+            reads of a value not yet updated).
 
     Not thread-safe: use one machine from one thread. Use as a context manager (or call
     :meth:`close`) to release the CA connections.
@@ -196,12 +203,21 @@ class EpicsMachine(GuardedMachine):
             )
             if check_control_limits:
                 refuse_outside_control_limits(names, bounds, limits)
+            ((obj_lo, obj_hi, obj_src),) = self._ca.control_limits([objective_pv], self.timeout)
+            self.objective_limits = None if obj_src == "none" else (obj_lo, obj_hi)
             x_now = torch.tensor(self._read_knobs(), dtype=DTYPE)
             try:
                 check_setting(x_now, bounds)
             except ValueError as err:
                 raise ValueError(f"the knobs' current readbacks are not allowed: {err}") from err
+            sp_now = self._ca.read_many(self.setpoint_pvs, self.timeout)
+            try:
+                check_setting(torch.tensor(sp_now, dtype=DTYPE), bounds)
+            except ValueError as err:
+                raise ValueError(f"the knobs' current setpoints are not allowed: {err}") from err
             super().__init__(bounds, names, max_step=max_step, x_init=x_now)
+            self._x = torch.tensor(sp_now, dtype=DTYPE)
+            self._acknowledged = [float(v) for v in sp_now]
             self.tolerance = tolerance
         except BaseException:
             self._ca.close()
@@ -272,26 +288,44 @@ class EpicsMachine(GuardedMachine):
         return torch.tensor(self._ca.read_many(self.setpoint_pvs, self.timeout), dtype=DTYPE)
 
     @property
+    def last_acknowledged(self) -> torch.Tensor:
+        r"""The setpoints the IOC last confirmed, per knob (``d`` float64): the setpoint PVs read
+        at connection or before the last set, updated by every put completion of ours. After a
+        failed set (a put never completed, the IOC died) it is what the IOC really received, not
+        what was intended."""
+        return torch.tensor(self._acknowledged, dtype=DTYPE)
+
+    @property
     def disconnections(self) -> int:
         """Channel disconnections seen since the machine connected (all its PVs)."""
         return self._ca.disconnections if self._ca is not None else 0
 
     def set(self, x) -> None:
-        """Check ``x`` against the bounds and ``max_step`` (from the readbacks), then apply it.
+        """Check ``x`` against the bounds and ``max_step`` (from the setpoint PVs read now),
+        then apply it.
 
         Raises:
             ValueError: the setting is refused (nothing written).
-            MachineError: the puts were not confirmed within ``timeout``.
-            ReadbackError: a readback did not reach its setpoint within the tolerance in time.
+            MachineError: the setpoints could not be read, or the puts were not confirmed
+                within ``timeout``.
+            ReadbackError: a readback did not reach its setpoint within the tolerance in time
+                (the puts themselves were completed: see :attr:`last_acknowledged`).
         """
         self._check_open()
-        self._x = self.get()  # max_step is measured from where the knobs really are
+        # max_step is measured from the setpoints the IOC holds now (never from readbacks)
+        sp = self.setpoints()
+        self._x = sp
+        self._acknowledged = sp.tolist()
         super().set(x)
 
     def _apply(self, x: torch.Tensor) -> None:
         """Write the setpoints, wait ``settle_time``, poll the readbacks until they match."""
         target = x.tolist()
-        self._ca.write_many(self.setpoint_pvs, target, self.timeout)
+
+        def on_ack(i: int) -> None:  # a put completion arrived: the IOC holds target[i]
+            self._acknowledged[i] = target[i]
+
+        self._ca.write_many(self.setpoint_pvs, target, self.timeout, on_ack=on_ack)
         if self.settle_time > 0:
             time.sleep(self.settle_time)
         deadline = time.monotonic() + self.timeout
@@ -335,6 +369,7 @@ class EpicsMachine(GuardedMachine):
         if math.isfinite(value):
             self._last_stamp = stamp
             info["stamps"].append(stamp)
+            info["values"].append(value)
         return value
 
     def _one_reading(self, info: dict) -> float:
@@ -370,7 +405,7 @@ class EpicsMachine(GuardedMachine):
             StaleReadingError: the objective PV did not update within ``stale_timeout``.
         """
         self._check_open()
-        info: dict = {"stamps": [], "stale_polls": 0}
+        info: dict = {"stamps": [], "values": [], "stale_polls": 0}
         self.last_reading = info
         total = 0.0
         for k in range(self.n_average):

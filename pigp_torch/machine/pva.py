@@ -126,12 +126,19 @@ class _P4pAdapter:
             out.append(limits)
         return out
 
-    def write_many(self, names: list[str], values: list[float], timeout: float) -> None:
-        """Put ``values`` to ``names`` (all sent at once) and wait for every completion."""
+    def write_many(
+        self, names: list[str], values: list[float], timeout: float, on_ack=None
+    ) -> None:
+        """Put ``values`` to ``names`` (all sent at once) and wait for every completion;
+        ``on_ack(i)`` (if given) for each put that completed."""
         results = self.context.put(
             list(names), [float(v) for v in values], timeout=max(1e-3, timeout), wait=True,
             throw=False,
         )  # fmt: skip
+        if on_ack is not None:
+            for i, r in enumerate(results):
+                if not isinstance(r, Exception):
+                    on_ack(i)
         bad = [(n, r) for n, r in zip(names, results, strict=True) if isinstance(r, Exception)]
         if bad:
             detail = "; ".join(f"{n}: {type(r).__name__}: {r}" for n, r in bad)

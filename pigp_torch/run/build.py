@@ -203,7 +203,21 @@ class RunSetup:
             readback_tol=c.readback_tolerance,
             restore_attempts=c.restore_attempts,
             restore_interval=c.restore_interval,
+            noise=self.stated_noise(),
+            objective_range=c.objective_range,
         )
+
+    def stated_noise(self) -> float | None:
+        """The noise of one reading the run states: ``objective_noise``, else the simulated
+        machine's noise, else the prior's (``None``: none stated)."""
+        c = self.config
+        if c.objective_noise is not None:
+            return c.objective_noise
+        if isinstance(c.machine, SimMachineConfig) and c.machine.noise > 0:
+            return c.machine.noise
+        prior = c.get_prior()
+        noise = getattr(prior, "noise", None)
+        return float(noise) if noise else None
 
 
 def build_run(config: RunConfig) -> RunSetup:

@@ -21,8 +21,8 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
 * ``end`` (one per session that ended in Python): ``status`` (``"completed"``,
   ``"interrupted"``, ``"aborted"`` or ``"failed"``), ``reason``, ``restored_to``,
   ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations`` and, on a machine,
-  ``restored`` (whether the knobs were put back), ``last_setpoint`` (the last setting written)
-  and ``restore_attempts``.
+  ``restored`` (whether the knobs were put back), ``last_setpoint`` (the last setting the
+  machine acknowledged; ``last_intended`` the last one sent) and ``restore_attempts``.
 
 While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.runlock.log_lock`,
 ``<log>.lock``): a second writer is refused with :class:`~pigp_torch.runlock.LockHeld`.

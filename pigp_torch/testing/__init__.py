@@ -27,6 +27,12 @@ NAN_READINGS_SUFFIX = "Sim:NanReadings"
 READBACK_DELAY_SUFFIX = "Sim:ReadbackDelay"
 FROZEN_SUFFIX = "Sim:Frozen"
 REBOOT_ON_READ_SUFFIX = "Sim:RebootOnRead"
+GLITCH_READINGS_SUFFIX = "Sim:GlitchReadings"
+GLITCH_VALUE_SUFFIX = "Sim:GlitchValue"
+STUCK_KNOB_SUFFIX = "Sim:StuckKnob"
+READBACK_OFFSET_SUFFIX = "Sim:ReadbackOffset"
+#: Display limits (LOPR/HOPR) of the simulated loss-rate PV, mA/min.
+LOSS_RATE_LIMITS = (0.0, 100.0)
 #: Loopback: the simulated IOC never listens on an outside interface.
 LOOPBACK = "127.0.0.1"
 
@@ -69,6 +75,13 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         default=0.0,
         help="seconds before a knob readback follows its setpoint (default 0)",
     )
+    p.add_argument(
+        "--put-log",
+        default=None,
+        metavar="FILE",
+        help="append every put the IOC receives to FILE (JSON lines: PV, value, the setpoint "
+        "before the put, time), for fault-injection tests (default: no put log)",
+    )
     return p
 
 
@@ -94,13 +107,18 @@ def free_ports(n: int = 1, attempts: int = 50) -> list[int]:
 __all__ = [
     "DEFAULT_PREFIX",
     "FROZEN_SUFFIX",
+    "GLITCH_READINGS_SUFFIX",
+    "GLITCH_VALUE_SUFFIX",
     "LOOPBACK",
+    "LOSS_RATE_LIMITS",
     "LOSS_RATE_SUFFIX",
     "NAN_READINGS_SUFFIX",
     "READBACK_DELAY_SUFFIX",
+    "READBACK_OFFSET_SUFFIX",
     "READBACK_SUFFIX",
     "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
+    "STUCK_KNOB_SUFFIX",
     "add_ioc_arguments",
     "free_ports",
 ]

@@ -60,6 +60,7 @@ def make_sim_ioc(
     readback_delay: float = 0.0,
     nan_readings: int = 0,
     x_init=None,
+    put_log=None,
 ) -> SimRingIOC:
     """The IOC of machine ``ring.build(seed)`` (not yet serving).
 
@@ -71,6 +72,7 @@ def make_sim_ioc(
         prefix: prefix of the loss-rate and switch PVs.
         update_period: see :class:`SimRingIOC`.
         readback_delay, nan_readings, x_init: see :func:`sim_ioc_class`.
+        put_log: file receiving every accepted setpoint put (see :class:`SimRingIOC`).
     """
     from pigp_torch.machine import SimulatedMachine
     from pigp_torch.simulation.spec import as_ring_spec
@@ -95,7 +97,7 @@ def make_sim_ioc(
         nan_readings=nan_readings,
         units=sim.knob_units,
     )
-    return cls(prefix="", machine=machine, update_period=update_period)
+    return cls(prefix="", machine=machine, update_period=update_period, put_log=put_log)
 
 
 # ----------------------------------------------------------------------------- serving
@@ -148,6 +150,7 @@ def sim_ioc_from_args(args):
         prefix=args.prefix,
         update_period=args.update_period,
         readback_delay=args.readback_delay,
+        put_log=getattr(args, "put_log", None),
     )
 
 

@@ -4,6 +4,7 @@ the IOC is ready) and its handle :class:`SimIOCProcess`."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import subprocess
 import sys
@@ -16,12 +17,16 @@ from pathlib import Path
 from pigp_torch.testing import (
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
+    GLITCH_READINGS_SUFFIX,
+    GLITCH_VALUE_SUFFIX,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
     READBACK_DELAY_SUFFIX,
+    READBACK_OFFSET_SUFFIX,
     READBACK_SUFFIX,
     REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
+    STUCK_KNOB_SUFFIX,
 )
 from pigp_torch.testing.ca_env import (
     READY_MESSAGE,
@@ -43,6 +48,8 @@ class SimIOCProcess:
         knob_names: the knob names served.
         prefix: prefix of the loss-rate and switch PVs.
         log_path: file receiving the IOC's stdout and stderr.
+        put_log_path: the IOC's put log (every setpoint put it accepted, see
+            :mod:`~pigp_torch.testing.ioc_pvs`).
     """
 
     process: subprocess.Popen
@@ -51,6 +58,40 @@ class SimIOCProcess:
     prefix: str
     log_path: Path
     env: dict[str, str] = field(default_factory=dict)
+    put_log_path: Path | None = None
+
+    def puts(self, since: int = 0) -> list[dict]:
+        """The entries of the IOC's put log from entry ``since`` on (a torn last line, being
+        written, is left out)."""
+        if self.put_log_path is None or not self.put_log_path.exists():
+            return []
+        out = []
+        for line in self.put_log_path.read_text().splitlines():
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                break
+        return out[since:]
+
+    def n_puts(self) -> int:
+        """Entries in the put log so far (a mark for :meth:`puts`)."""
+        return len(self.puts())
+
+    @property
+    def glitch_readings_pv(self) -> str:
+        return f"{self.prefix}{GLITCH_READINGS_SUFFIX}"
+
+    @property
+    def glitch_value_pv(self) -> str:
+        return f"{self.prefix}{GLITCH_VALUE_SUFFIX}"
+
+    @property
+    def stuck_knob_pv(self) -> str:
+        return f"{self.prefix}{STUCK_KNOB_SUFFIX}"
+
+    @property
+    def readback_offset_pv(self) -> str:
+        return f"{self.prefix}{READBACK_OFFSET_SUFFIX}"
 
     @property
     def loss_rate_pv(self) -> str:
@@ -158,7 +199,8 @@ def start_sim_ioc(
     Launches ``python -m pigp_torch.testing.ioc`` with the server bound to the loopback interface
     and ``port`` (default: a free one, so parallel runs do not collide), waits (at most
     ``startup_timeout`` s) for its ready line and for its PVs to answer over CA, and stops it
-    (SIGTERM, then SIGKILL) when the block ends, also on errors.
+    (SIGTERM, then SIGKILL) when the block ends, also on errors. The IOC keeps a put log (every
+    setpoint put it accepted) in a temporary file, read with :meth:`SimIOCProcess.puts`.
 
     With ``set_client_env`` (default) the block runs with ``EPICS_CA_ADDR_LIST=127.0.0.1:port``,
     ``EPICS_CA_AUTO_ADDR_LIST=NO`` in ``os.environ`` (restored afterwards), so caproto clients of
@@ -182,15 +224,19 @@ def start_sim_ioc(
     cmd += ["--prefix", prefix, "--port", str(port)]
     cmd += ["--update-period", repr(float(update_period))]
     cmd += ["--readback-delay", repr(float(readback_delay))]
+    log_dir = Path(tempfile.mkdtemp(prefix="pigp-sim-ioc-"))
+    log_path = log_dir / "ioc.log"
+    put_log = log_dir / "puts.jsonl"
+    cmd += ["--put-log", str(put_log)]
     env = dict(os.environ)
     env.update(server_environment(port))
     env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     env["PYTHONUNBUFFERED"] = "1"
-    log_dir = Path(tempfile.mkdtemp(prefix="pigp-sim-ioc-"))
-    log_path = log_dir / "ioc.log"
     with open(log_path, "wb") as log:
         process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-    handle = SimIOCProcess(process, port, names, prefix, log_path, env=server_environment(port))
+    handle = SimIOCProcess(
+        process, port, names, prefix, log_path, env=server_environment(port), put_log_path=put_log
+    )
     try:
         env_cm = patched_environ(handle.client_env) if set_client_env else contextlib.nullcontext()
         with env_cm:
@@ -200,4 +246,5 @@ def start_sim_ioc(
         handle.stop()
         with contextlib.suppress(OSError):
             log_path.unlink()
+            put_log.unlink(missing_ok=True)
             log_dir.rmdir()

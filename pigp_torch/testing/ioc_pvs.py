@@ -23,7 +23,27 @@ PV                        access      meaning
                                       rate from now (decremented on each read) is answered,
                                       then the "IOC reboots": every setpoint and readback
                                       drops to its power-on value (the initial knobs)
+``P Sim:GlitchReadings``  read/write  fault injection: the next N client reads of the loss
+                                      rate return ``GlitchValue`` (decremented on each read),
+                                      with a fresh timestamp, like a real glitch
+``P Sim:GlitchValue``     read/write  the glitch's value (default 1e30 mA/min)
+``P Sim:StuckKnob``       read/write  fault injection: ``k`` >= 1 freezes the readback of knob
+                                      ``k`` (1-based, knob order) where it is: it no longer
+                                      follows its setpoint (a stuck supply); 0 releases it
+``P Sim:ReadbackOffset``  read/write  fault injection: every readback is its setpoint plus this
+                                      offset (knob units; a calibration offset)
 ========================  ==========  ========================================================
+
+**Put log.** With ``put_log`` (``pigp serve-sim --put-log FILE``) every put the IOC accepts on
+a setpoint (after the control limits) is appended to that file as a JSON line
+``{"pv", "knob", "value", "previous", "time"}`` — ``previous`` is the setpoint before the put,
+so ``|value - previous|`` is the step the IOC was asked for — and an IOC reboot as
+``{"reboot": true, "time"}``. Tests read it (:meth:`SimIOCProcess.puts
+<pigp_torch.testing.ioc_process.SimIOCProcess.puts>`) to check what the IOC received,
+independently of the client.
+
+The loss-rate PV has display limits ``LOPR``/``HOPR`` = ``LOSS_RATE_LIMITS`` ([0, 100] mA/min),
+the plausible range a client may take as the objective's physical range.
 
 The loss rate's CA timestamp is the time of its last refresh (a client read does not renew
 it), so a client can tell a fresh reading from a repeated one.
@@ -46,8 +66,10 @@ demos; ``pigp serve-sim`` runs it in the foreground.
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import time
+from pathlib import Path
 
 import torch
 from caproto import ChannelType
@@ -58,12 +80,17 @@ from pigp_torch.machine.base import check_setting
 from pigp_torch.testing import (
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
+    GLITCH_READINGS_SUFFIX,
+    GLITCH_VALUE_SUFFIX,
+    LOSS_RATE_LIMITS,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
     READBACK_DELAY_SUFFIX,
+    READBACK_OFFSET_SUFFIX,
     READBACK_SUFFIX,
     REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
+    STUCK_KNOB_SUFFIX,
 )
 
 
@@ -81,6 +108,7 @@ class SimRingIOC(PVGroup):
     Args:
         machine: the :class:`~pigp_torch.machine.SimulatedMachine` that produces the readings.
         update_period: seconds between loss-rate refreshes (> 0).
+        put_log: file to append every accepted setpoint put to (JSON lines), or ``None``.
         **kwargs: passed to :class:`caproto.server.PVGroup` (``prefix`` must stay ``""``: the
             names are complete already).
     """
@@ -93,6 +121,7 @@ class SimRingIOC(PVGroup):
         *args,
         machine,
         update_period: float = 0.1,
+        put_log=None,
         **kwargs,
     ) -> None:
         if not self.knob_names:
@@ -104,6 +133,7 @@ class SimRingIOC(PVGroup):
             raise ValueError(f"update_period must be positive and finite, got {update_period}")
         self.machine = machine
         self.update_period = update_period
+        self.put_log = None if put_log is None else Path(put_log)
         super().__init__(*args, **kwargs)
         d = len(self.knob_names)
         self.setpoints = [getattr(self, f"setpoint_{i}") for i in range(d)]
@@ -113,13 +143,31 @@ class SimRingIOC(PVGroup):
         self._last_reading = float("nan")
         self._refresh_stamp = time.time()
         self._served_nan = False
+        self._served_glitch = False
         self._refresh()  # a valid first reading (this also checks the knobs against the bounds)
         self._put_count = [0] * d  # latest put per knob wins over older delayed readbacks
         self._tasks: set[asyncio.Task] = set()
 
     # ------------------------------------------------------------------ hooks
+    def _log_put(self, entry: dict) -> None:
+        """Append one entry to the put log (synchronous: a put is answered after it is logged)."""
+        if self.put_log is None:
+            return
+        entry["time"] = time.time()
+        with open(self.put_log, "a", encoding="utf-8") as f:
+            f.write(json.dumps(entry) + "\n")
+
     async def _on_setpoint(self, i: int, value: float) -> None:
-        """Setpoint ``i`` accepted (the control limits already passed): move its readback."""
+        """Setpoint ``i`` accepted (the control limits already passed): log the put, move its
+        readback."""
+        self._log_put(
+            {
+                "pv": self.setpoints[i].pvspec.name,
+                "knob": self.knob_names[i],
+                "value": float(value),
+                "previous": float(self.setpoints[i].value),
+            }
+        )
         self._put_count[i] += 1
         delay = float(self.readback_delay.value)
         if delay <= 0:
@@ -137,8 +185,13 @@ class SimRingIOC(PVGroup):
             await self._set_readback(i, value)
 
     async def _set_readback(self, i: int, value: float) -> None:
-        self._x_readback[i] = float(value)
-        await self.readbacks[i].write(float(value))
+        """The readback of knob ``i`` follows setpoint ``value`` (plus ``ReadbackOffset``),
+        unless ``StuckKnob`` names it."""
+        if int(self.stuck_knob.value) == i + 1:
+            return  # a stuck supply: the readback stays where it is
+        value = float(value) + float(self.readback_offset.value)
+        self._x_readback[i] = value
+        await self.readbacks[i].write(value)
 
     def _refresh(self) -> float:
         """One noisy reading of the simulated loss rate at the current readbacks."""
@@ -156,11 +209,12 @@ class SimRingIOC(PVGroup):
             if not int(self.frozen.value):
                 value = self._refresh()
                 await self.loss_rate.write(value, timestamp=self._refresh_stamp)
-                self._served_nan = False
+                self._served_nan = self._served_glitch = False
             await sleep(max(0.0, self.update_period - (time.monotonic() - t0)))
 
     async def _reboot(self) -> None:
         """Every setpoint and readback back at its power-on value (an IOC without autosave)."""
+        self._log_put({"reboot": True})
         for i, value in enumerate(self._power_on):
             self._put_count[i] += 1
             await self.setpoints[i].write(value, verify_value=False)
@@ -179,10 +233,22 @@ class SimRingIOC(PVGroup):
             await self.nan_readings.write(n - 1)
             self._served_nan = True
             return float("nan")
-        if self._served_nan:  # put the last refresh back, with its own timestamp
-            self._served_nan = False
+        n = int(self.glitch_readings.value)
+        if n > 0:  # served with the time of this read: it looks like a fresh reading
+            await self.glitch_readings.write(n - 1)
+            self._served_glitch = True
+            return float(self.glitch_value.value)
+        if self._served_nan or self._served_glitch:  # the last refresh, with its own timestamp
+            self._served_nan = self._served_glitch = False
             await self.loss_rate.write(self._last_reading, timestamp=self._refresh_stamp)
         return None
+
+    async def _on_offset(self, offset: float) -> None:
+        """A new ``ReadbackOffset``: every readback not stuck moves to its setpoint + offset."""
+        for i, sp in enumerate(self.setpoints):
+            if int(self.stuck_knob.value) != i + 1:
+                self._x_readback[i] = float(sp.value) + offset
+                await self.readbacks[i].write(float(sp.value) + offset)
 
     # ------------------------------------------------------------------ names
     @property
@@ -272,6 +338,8 @@ def sim_ioc_class(
         read_only=True,
         precision=4,
         units="mA/min",
+        lower_disp_limit=LOSS_RATE_LIMITS[0],
+        upper_disp_limit=LOSS_RATE_LIMITS[1],
         doc="simulated loss rate at the readbacks plus Gaussian noise (mA/min)",
     )
 
@@ -300,6 +368,10 @@ def sim_ioc_class(
          "fault injection (tests): 1 stops the loss-rate refreshes"),
         ("reboot_on_read", REBOOT_ON_READ_SUFFIX, 0, 1_000_000,
          "fault injection (tests): reboot (knobs to power-on values) at the N-th read"),
+        ("glitch_readings", GLITCH_READINGS_SUFFIX, 0, 1_000_000,
+         "fault injection: the next N reads of the loss rate return GlitchValue"),
+        ("stuck_knob", STUCK_KNOB_SUFFIX, 0, len(names),
+         "fault injection: k >= 1 freezes the readback of knob k (1-based); 0 releases it"),
     )  # fmt: skip
     for attr, suffix, value, upper, doc in switches:
         attrs[attr] = pvproperty(
@@ -310,4 +382,23 @@ def sim_ioc_class(
             upper_ctrl_limit=upper,
             doc=doc,
         )
+    attrs["glitch_value"] = pvproperty(
+        value=1e30,
+        name=f"{prefix}{GLITCH_VALUE_SUFFIX}",
+        dtype=ChannelType.DOUBLE,
+        doc="fault injection: the value a glitch reading returns",
+    )
+    offset = pvproperty(
+        value=0.0,
+        name=f"{prefix}{READBACK_OFFSET_SUFFIX}",
+        dtype=ChannelType.DOUBLE,
+        units=str(units),
+        doc="fault injection: every readback is its setpoint plus this offset",
+    )
+
+    async def put_offset(group, instance, value):
+        await group._on_offset(float(value))
+
+    offset.putter(put_offset)
+    attrs["readback_offset"] = offset
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)

@@ -149,7 +149,7 @@ def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, 
     captured = capsys.readouterr()
     assert "the knobs were NOT restored (exit status 3)" in captured.err
     assert "KNOBS NOT RESTORED (initial (failed), 2 attempt(s))" in captured.out
-    assert "last setpoint written: 01G-QSS4=" in captured.out
+    assert "last setpoint acknowledged: 01G-QSS4=" in captured.out
     assert not torch.equal(get(machines[0]), initial())  # the readback is stuck off the target
     assert "the end record is NOT in it" in captured.out
 

@@ -105,6 +105,10 @@ def reset(handle, client) -> None:
     client.write(handle.nan_readings_pv, 0)
     client.write(handle.frozen_pv, 0)
     client.write(handle.reboot_on_read_pv, 0)
+    client.write(handle.glitch_readings_pv, 0)
+    client.write(handle.glitch_value_pv, 1e30)
+    client.write(handle.stuck_knob_pv, 0)
+    client.write(handle.readback_offset_pv, 0.0)
     client.write_many(handle.setpoint_pvs, torch.zeros(len(handle.knob_names)))
 
 

@@ -1,6 +1,7 @@
 """EpicsMachine over real Channel Access against the simulated IOC (127.0.0.1)."""
 
 import math
+import os
 import time
 
 import pytest
@@ -230,3 +231,46 @@ def test_readbacks_outside_bounds_at_start_refused(ioc, probe, ca_context):
     lim = torch.full((d,), 0.005, dtype=torch.float64)
     with pytest.raises(ValueError, match="the knobs' current readbacks are not allowed"):
         make_machine(ioc, ca_context, bounds=torch.stack([-lim, lim]))
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd")
+def test_open_close_cycles_leak_no_file_descriptors(ioc):
+    """Each EpicsMachine with a context of its own opens sockets and two selector (epoll)
+    descriptors; close() releases all of them: after 5 open/read/close cycles the process holds
+    as many descriptors as before (a long-lived process, e.g. Badger, opens one per run)."""
+
+    def n_fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    def cycle():
+        with make_machine(ioc) as m:  # no shared context: the machine owns one
+            m.read()
+
+    cycle()  # warm-up: caproto's one-per-process state
+    before = n_fds()
+    for _ in range(5):
+        cycle()
+    assert n_fds() == before
+
+
+def test_the_step_limit_is_measured_from_the_setpoints_not_the_readbacks(ioc, probe):
+    """With every readback 0.001 A above its setpoint, a set of exactly max_step from the
+    setpoint is accepted and one a little beyond is refused before anything is written; the
+    IOC's put log shows the accepted step, and last_acknowledged follows the puts."""
+    d = len(ioc.knob_names)
+    probe.write(ioc.readback_offset_pv, 0.001)
+    m_step = 0.004
+    with make_machine(ioc, max_step=torch.full((d,), m_step), tolerance=0.002) as m:
+        x0 = m.setpoints()
+        assert torch.equal(m.last_acknowledged, x0) and torch.equal(x0, torch.zeros(d))
+        assert torch.allclose(m.get(), x0 + 0.001, atol=1e-12)  # the readbacks read off
+        mark = ioc.n_puts()
+        x1 = x0 - m_step  # 0.005 from the readbacks: refused if measured from them
+        m.set(x1)
+        assert torch.equal(m.last_acknowledged, x1)
+        steps = [abs(p["value"] - p["previous"]) for p in ioc.puts(mark)]
+        assert len(steps) == d and max(steps) == pytest.approx(m_step, abs=1e-15)
+        with pytest.raises(ValueError, match="step too large"):
+            m.set(x1 - m_step * 1.01)
+        assert ioc.n_puts() == mark + d  # nothing written
+        assert torch.equal(probe.read_many(ioc.setpoint_pvs), x1)

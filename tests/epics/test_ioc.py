@@ -54,6 +54,10 @@ def test_pv_names_limits_and_initial_values():
         "T:Sim:NanReadings",
         "T:Sim:Frozen",
         "T:Sim:RebootOnRead",
+        "T:Sim:GlitchReadings",
+        "T:Sim:StuckKnob",
+        "T:Sim:GlitchValue",
+        "T:Sim:ReadbackOffset",
     ]
     assert ioc.loss_rate_pv == "T:BeamLossRate"
     assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]

@@ -146,7 +146,7 @@ def test_a_full_disk_and_a_supply_that_stops_following_exit_3(
     assert "KNOBS NOT RESTORED" in captured.out and "the end record is NOT in it" in captured.out
     now = setpoints(ioc, probe)
     held = ", ".join(f"{n}={v:.6g}" for n, v in zip(KNOBS, now.tolist(), strict=True))
-    assert f"last setpoint written: {held}" in captured.out
+    assert f"last setpoint acknowledged: {held}" in captured.out
 
 
 def edit_first(path, kind, change) -> int:

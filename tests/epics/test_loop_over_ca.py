@@ -92,25 +92,37 @@ def test_slow_readback_raises_and_restores_setpoints(ioc, probe, ring):
 
 
 @pytest.mark.slow
-def test_ioc_killed_mid_run(ring):
-    """The IOC dies after step 2: the loop raises MachineError; the completed rows are intact."""
+def test_ioc_killed_mid_run(ring, tmp_path):
+    """The IOC dies after step 2, just as step 3's puts go out: the loop raises MachineError;
+    the completed rows are intact. The end record's last setpoint is the last one the IOC
+    acknowledged — the values of the last puts in its own put log — not step 3's setting,
+    which was intended (logged as an intent) but never reached it."""
+    from pigp_torch.runlog import read_log
     from pigp_torch.testing.ioc import start_sim_ioc
 
+    log = tmp_path / "r.jsonl"
     with start_sim_ioc(IOC_SEED, update_period=UPDATE_PERIOD) as handle:
         rows = []
 
         def callback(row):
             rows.append(row)
-            if row["step"] == 2:
-                handle.kill()
 
         with machine(handle, ring.bounds) as m:
+            real_write = m._ca.write_many
+
+            def write_many(*args, **kwargs):  # the IOC dies as step 3's puts are sent
+                if len(rows) == 3:
+                    handle.kill()
+                return real_write(*args, **kwargs)
+
+            m._ca.write_many = write_many
             optimizer = NelderMead(ring.bounds, initial_simplex_size=0.05)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 with pytest.raises(MachineError):
-                    optimize(m, optimizer, budget=8, callback=callback)
+                    optimize(m, optimizer, budget=8, callback=callback, log=log)
         assert not handle.alive()
+        received = {p["knob"]: p["value"] for p in handle.puts()}
     assert [r["step"] for r in rows] == [0, 1, 2]
     X = torch.tensor([[r[n] for n in ring.knob_names] for r in rows], dtype=torch.float64)
     y = torch.tensor([r["y"] for r in rows], dtype=torch.float64)
@@ -119,6 +131,10 @@ def test_ioc_killed_mid_run(ring):
     f_true = ring.loss_rate(X)
     assert ((y - f_true).abs() < 5 * NOISE).all()  # each logged reading belongs to its knobs
     assert any("could not restore" in str(w.message) for w in caught)  # nothing to restore to
+    end = read_log(log).last_end
+    assert end["restored"] is False
+    assert end["last_setpoint"] == [received[n] for n in ring.knob_names] == X[2].tolist()
+    assert end["last_intended"] != end["last_setpoint"]  # step 3's setting never arrived
 
 
 @pytest.mark.slow

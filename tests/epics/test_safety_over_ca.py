@@ -228,13 +228,13 @@ def test_a_restore_that_fails_exits_3_with_the_last_setpoint(
 
     EpicsMachine.read = read
     try:
-        with pytest.warns(UserWarning, match=r"could not restore .* last setpoint written"):
+        with pytest.warns(UserWarning, match=r"could not restore .* last setpoint acknowledged"):
             code = cli.main(["optimize", "--config", config, "--quiet"])
     finally:
         EpicsMachine.read = real
     captured = capsys.readouterr()
     assert code == 3, captured.err
-    assert "KNOBS NOT RESTORED" in captured.out and "last setpoint written:" in captured.out
+    assert "KNOBS NOT RESTORED" in captured.out and "last setpoint acknowledged:" in captured.out
     assert "exit status 3" in captured.err
     log = read_log(tmp_path / "run.jsonl")
     end = log.last_end
@@ -242,7 +242,10 @@ def test_a_restore_that_fails_exits_3_with_the_last_setpoint(
     assert end["last_setpoint"] == log.last_intent["x"]  # the restore ramp's last write
     assert log.last_intent["purpose"] == "restore initial"
     last = ", ".join(f"{n}={v:.6g}" for n, v in zip(KNOBS, end["last_setpoint"], strict=True))
-    assert f"last setpoint written: {last}" in captured.out
+    assert f"last setpoint acknowledged: {last}" in captured.out
+    # setpoint space: the setpoints are back at the start although a readback never followed
+    assert torch.equal(probe.read_many(ioc.setpoint_pvs[:2]), start_of(ring))
+    assert end["final_setpoints"] == start_of(ring).tolist() == end["restore_target"]
 
 
 def test_a_missing_pv_is_one_message_without_traceback(ioc, ring, tmp_path, capsys, with_optimize):

@@ -1,0 +1,274 @@
+r"""Which readings a run believes: finite, inside the objective's physical range, and — when one
+stands out from the run's own readings — confirmed by a re-read (:class:`ReadingJudge`); and the
+reading loop that applies it (:func:`plausible_reading`).
+
+**The rule.** Let :math:`y_1, \dots, y_n` be the readings accepted so far in the run (replayed
+ones included), :math:`\tilde y` their median, :math:`\mathrm{MAD}` their median absolute
+deviation and :math:`\sigma` the stated noise of one reading (objective units; ``None``: not
+stated). A new reading :math:`y` is
+
+* *invalid* — discarded, logged, read again — if it is not finite or lies outside the physical
+  range :math:`[\ell, h]` (``objective_range``);
+* *suspicious* if :math:`|y - \tilde y| > k\, s` with the robust scale
+  :math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` and :math:`k` = :data:`OUTLIER_K` (= 5),
+  once :math:`n \ge` :data:`MIN_READINGS` (= 5), and with :math:`s = \sigma` from the second
+  reading until then. The rule needs the stated noise: without :math:`\sigma` it does not apply
+  (only finite and in range). A suspicious reading is read again at the same setting and kept
+  only if the two agree, :math:`|y - y'| \le a\sqrt 2\, \sigma` with :math:`a` =
+  :data:`AGREE_A` (= 4); the evaluation's value is then their mean. If they do not agree, the
+  re-read is judged afresh: not suspicious, it is the reading and the suspicious one is
+  discarded (logged); suspicious too, it waits as well and the next reading that agrees with
+  either decides (all within ``read_retries``).
+
+A reading far from the others is not discarded for being far — a run that optimizes moves its
+readings by many noise sigmas — only for not repeating: a genuine improvement reads the same
+twice, a glitch does not. A glitch that repeats on consecutive readings with the same value
+cannot be told from a real change by readings alone; the physical range is the defence against
+those, and the best point is read again before the knobs are set there (``restore: best``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import torch
+
+from pigp_torch.machine.errors import ReadError
+
+#: Outlier threshold :math:`k` in robust-scale units.
+OUTLIER_K = 5.0
+#: Agreement of a re-read with a suspicious reading, :math:`a` in units of :math:`\sqrt2\,s'`.
+AGREE_A = 4.0
+#: Accepted readings before the median/MAD rule applies on its own scale.
+MIN_READINGS = 5
+#: Consistency constant of the MAD for a Gaussian (MAD x 1.4826 estimates sigma).
+MAD_TO_SIGMA = 1.4826
+
+
+class ReadingJudge:
+    r"""Keeps the run's accepted readings and says whether a new one is valid, suspicious, or
+    agrees with a re-read (the rule in the module docstring).
+
+    Args:
+        noise: stated noise :math:`\sigma` of one reading (objective units, > 0), or ``None``.
+        objective_range: ``(lower, upper)`` physical range of a reading, or ``None``.
+        readings: readings accepted before (a resumed run's), in order.
+    """
+
+    def __init__(self, noise=None, objective_range=None, readings=()) -> None:
+        self.noise = None if noise is None else float(noise)
+        if self.noise is not None and not (0.0 < self.noise < math.inf):
+            raise ValueError(f"noise must be positive and finite, got {noise}")
+        if objective_range is not None:
+            lo, hi = (float(v) for v in objective_range)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"objective_range must be finite with lower < upper, got "
+                                 f"{objective_range}")  # fmt: skip
+            objective_range = (lo, hi)
+        self.objective_range = objective_range
+        self.readings: list[float] = [float(y) for y in readings]
+
+    def accept(self, y: float) -> None:
+        self.readings.append(float(y))
+
+    def invalid(self, y: float) -> str | None:
+        """Why ``y`` is invalid (not finite, outside the range), ``None`` if it is not."""
+        if not math.isfinite(y):
+            return f"non-finite reading {y}"
+        if self.objective_range is not None:
+            lo, hi = self.objective_range
+            if not lo <= y <= hi:
+                return f"reading {y:.6g} outside the objective range [{lo:g}, {hi:g}]"
+        return None
+
+    def invalid_parts(self, parts) -> str | None:
+        """Why a reading averaged from ``parts`` is invalid: one of them is (an average would
+        dilute a glitch into the range), ``None`` if none is."""
+        for k, part in enumerate(parts or ()):
+            why = self.invalid(float(part))
+            if why is not None:
+                return f"{why} (reading {k + 1} of {len(parts)} averaged)"
+        return None
+
+    def scale(self) -> float | None:
+        r""":math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` (``None`` while the rule does not
+        apply)."""
+        n = len(self.readings)
+        if self.noise is None or n == 0:
+            return None
+        if n >= MIN_READINGS:
+            y = torch.tensor(self.readings, dtype=torch.float64)
+            return max(float((y - y.median()).abs().median()) * MAD_TO_SIGMA, self.noise)
+        return self.noise
+
+    def suspicious(self, y: float) -> str | None:
+        """Why ``y`` needs a re-read (far from the median of the accepted readings)."""
+        s = self.scale()
+        if s is None:
+            return None
+        med = float(torch.tensor(self.readings, dtype=torch.float64).median())
+        if abs(y - med) > OUTLIER_K * s:
+            return (
+                f"reading {y:.6g} is {abs(y - med) / s:.3g} robust sigmas (s = {s:.3g}) from the "
+                f"median {med:.6g} of the run's {len(self.readings)} readings"
+            )
+        return None
+
+    def agreement_tolerance(self) -> float:
+        r""":math:`a\sqrt2\,\sigma`: how far a re-read may lie from a suspicious reading."""
+        return AGREE_A * math.sqrt(2.0) * (self.noise or 0.0)
+
+
+def plausible_reading(
+    take: Callable[[], float | None],
+    judge: ReadingJudge | None,
+    retries: int,
+    interval: float,
+    on_discard: Callable[[str, float], None],
+    parts: Callable[[], list | None] | None = None,
+) -> tuple[float, int]:
+    r"""A reading the run believes: ``take()`` until one is valid and (if suspicious) confirmed.
+
+    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (checked
+    against the machine's state, reported already), or raises ``ReadError``/``TimeoutError``
+    (a failed attempt) or ``MachineError`` (passed on). A reading invalid under ``judge`` is
+    reported to ``on_discard(reason, y)`` (NaN/inf quietly) and is a failed attempt. A
+    suspicious reading waits for a re-read: a later valid reading that agrees with it confirms
+    it (the value is their mean; other waiting readings are discarded); one that is not
+    suspicious itself is kept and the waiting ones are discarded; one that is suspicious and
+    agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
+    attempts (``interval`` s apart), so at most ``retries + 2`` reads. ``parts()`` (if given)
+    returns the single readings a machine averaged into the last one; each must be valid too.
+
+    Returns:
+        ``(y, reads)``: the value and the readings taken.
+
+    Raises:
+        ReadError: more than ``retries`` failed attempts.
+    """
+    problems: list[str] = []
+    failures = reads = 0
+    pending: list[tuple[float, str]] = []  # suspicious readings waiting for a re-read
+
+    def drop_pending(keep=None, detail: str = "") -> None:
+        for y_p, why in pending:
+            if keep is None or y_p != keep:
+                on_discard(f"{why}; not confirmed{detail}", y_p)
+                problems.append(f"unconfirmed reading {y_p:.6g}")
+
+    while failures <= retries:
+        if reads > 0 and interval > 0 and not pending:
+            time.sleep(interval)
+        reads += 1
+        try:
+            y = take()
+        except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
+            problems.append(f"{type(err).__name__}: {err}")
+            failures += 1
+            continue
+        if y is None:
+            problems.append("discarded")
+            failures += 1
+            continue
+        y = float(y)
+        if judge is not None:
+            why = judge.invalid(y)
+            if why is None and parts is not None:
+                why = judge.invalid_parts(parts())
+        else:
+            why = None if math.isfinite(y) else f"non-finite reading {y}"
+        if why is not None:
+            if math.isfinite(y):  # NaN/inf are retried quietly, as they always were
+                on_discard(why, y)
+            problems.append(why)
+            failures += 1
+            continue
+        if pending:
+            tol = judge.agreement_tolerance()
+            match = next((p for p, _ in pending if abs(y - p) <= tol), None)
+            if match is not None:
+                drop_pending(keep=match, detail=f": a re-read agreed with {match:.6g} instead")
+                value = 0.5 * (match + y)
+                judge.accept(value)
+                return value, reads
+        why = judge.suspicious(y) if judge is not None else None
+        if why is None:
+            drop_pending(detail=f": the re-read {y:.6g} differs by more than "
+                                f"{judge.agreement_tolerance() if judge else 0.0:.3g}")  # fmt: skip
+            if judge is not None:
+                judge.accept(y)
+            return y, reads
+        if pending:
+            failures += 1  # two suspicious readings that disagree
+        pending.append((y, why))
+    drop_pending(detail=": no re-read agreed")
+    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+
+
+#: Fresh readings taken at the best point before the knobs are left there (``restore: best``).
+CONFIRM_READS = 3
+#: The best point reproduces if the mean of those readings is no worse than the best reading
+#: by more than :math:`s(\sqrt{2\ln N} + C\sqrt{1 + 1/m})`, :math:`C` this.
+CONFIRM_C = 4.0
+
+
+def confirm_best(
+    take: Callable[[], float],
+    y_best: float,
+    judge: ReadingJudge | None,
+    maximize: bool,
+    n: int = CONFIRM_READS,
+) -> dict:
+    r"""Read the best point again ``n`` times (``take()``, the knobs already there) and say
+    whether it reproduces.
+
+    With :math:`\bar y` the mean of the :math:`m = n` fresh readings and :math:`N` the run's
+    readings, the point is confirmed if :math:`\bar y` is not worse than the best reading
+    :math:`y^*` by more than
+
+    .. math:: s \left(\sqrt{2 \ln N} + C \sqrt{1 + 1/m}\right), \qquad C = 4,
+
+    the first term the upward error to expect of the best of :math:`N` noisy readings (the best
+    reading is read high by its noise), the second the spread of the difference. :math:`s` is
+    the stated noise :math:`\sigma`; without it, the larger of :math:`1.4826\,\mathrm{MAD}` of
+    the run's readings and the standard deviation of the fresh ones (a rough scale: state the
+    noise with ``restore="best"``). A glitch that became the best does not reproduce; a
+    genuine best does.
+
+    Returns:
+        ``{"confirmed", "readings", "mean", "best", "tolerance", "message"}``; ``"abandoned"``
+        when a second signal (``KeyboardInterrupt``) stopped it, ``"error"`` when a reading
+        failed (then not confirmed).
+    """
+    readings: list[float] = []
+    out = {"confirmed": False, "readings": readings, "best": float(y_best)}
+    try:
+        for _ in range(n):
+            readings.append(float(take()))
+    except KeyboardInterrupt as err:
+        out.update(abandoned=True, message=f"stopped by a signal while reading it: {err}")
+        return out
+    except Exception as err:
+        out.update(error=f"{type(err).__name__}: {err}", message=f"no reading there ({err})")
+        return out
+    run = list(judge.readings) if judge is not None else []
+    if judge is not None and judge.noise is not None:
+        s = judge.noise
+    else:
+        s = float(torch.tensor(readings, dtype=torch.float64).std()) if n >= 2 else 0.0
+        if len(run) >= 2:
+            y = torch.tensor(run, dtype=torch.float64)
+            s = max(s, float((y - y.median()).abs().median()) * MAD_TO_SIGMA)
+    selection = math.sqrt(2.0 * math.log(len(run))) if len(run) >= 2 else 0.0
+    tol = s * (selection + CONFIRM_C * math.sqrt(1.0 + 1.0 / n))
+    out["tolerance"] = tol
+    mean = sum(readings) / n
+    worse = (y_best - mean) if maximize else (mean - y_best)
+    out.update(mean=mean, confirmed=bool(worse <= tol))
+    out["message"] = (
+        f"{n} fresh readings there average {mean:.6g} against the best reading {y_best:.6g} "
+        f"(worse by {max(worse, 0.0):.3g}, tolerance {tol:.3g})"
+    )
+    return out
