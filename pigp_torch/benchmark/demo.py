@@ -128,8 +128,8 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
           f"{a.budget} evaluations each", flush=True)  # fmt: skip
     names, unit = model_ring.knob_names, model_ring.knob_units
     runs = [
-        run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit), a.machine_seed,
-                prior, budget=a.budget)
+        run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min"),
+                a.machine_seed, prior, budget=a.budget)
         for m in a.methods
     ]  # fmt: skip
     return pd.concat(runs, ignore_index=True), prior

@@ -242,10 +242,13 @@ def _run(args, setup, records, log_lock) -> int:
         out.flush()
     from pigp_torch.progress import ProgressLine
 
-    sim = getattr(setup.machine, "sim", None)  # the simulated ring knows its knob unit
-    unit = str(getattr(sim, "knob_units", "") or "")
     report = ProgressLine(
-        config.budget, config.knob_names, maximize=config.objective.maximize, unit=unit, out=out
+        config.budget,
+        config.knob_names,
+        maximize=config.objective.maximize,
+        unit=config.knob_unit,
+        objective_unit=config.objective_unit,
+        out=out,
     )
     if records is not None and records.evaluations:
         say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
