@@ -105,8 +105,10 @@ def register(sub, bench) -> None:
     p.add_argument(
         "--dashboard",
         action="store_true",
-        help="serve a live page of the run on 127.0.0.1 (step, readings, best so far, knob "
-        "moves; read from the run log) while it runs; the URL is printed",
+        help="serve a live page of the run on 127.0.0.1 (step, readings and best so far, knob "
+        "settings, notices; read from the run log) while it runs; the URL is printed. At the "
+        "end the final state is written to <log stem>_dashboard.html (path printed) and the "
+        "server stops once an open page has it (at most 5 s)",
     )
     p.add_argument(
         "--dashboard-port",
@@ -255,10 +257,11 @@ def _run(args, setup, records, log_lock) -> int:
         report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
     dashboard = None
     if getattr(args, "dashboard", False):
-        from pigp_torch.dashboard import Dashboard
+        from pigp_torch.dashboard import Dashboard, final_page_path
 
         dashboard = Dashboard(log.path, port=args.dashboard_port)
-        say(out, f"dashboard: {dashboard.url} (while the run goes)")
+        say(out, f"dashboard: {dashboard.url} (while the run goes; the final page is then "
+                  f"written to {final_page_path(log.path)})")  # fmt: skip
     code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
@@ -274,9 +277,12 @@ def _run(args, setup, records, log_lock) -> int:
         say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()
-        if dashboard is not None:
-            dashboard.close()
         end = print_summary(log.path, out)
+        if dashboard is not None:
+            try:
+                say(out, f"dashboard: final page {dashboard.finish()}")
+            except (OSError, ValueError) as err:
+                say(sys.stderr, f"pigp optimize: dashboard final page not written: {err}")
         with contextlib.suppress(OSError, ValueError):
             out.flush()
     if end is not None and end.get("restored") is False:
