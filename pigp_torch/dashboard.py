@@ -368,8 +368,8 @@ class Dashboard:
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
-                if route == "/state.json" and dashboard.final_page is not None:
-                    dashboard._final_served.set()
+                if route == "/state.json" and state.get("ended"):
+                    dashboard._final_served.set()  # an open page has the final state
 
         self._server = ThreadingHTTPServer((host, int(port)), Handler)
         self._server.daemon_threads = True
@@ -391,10 +391,9 @@ class Dashboard:
         has been polling, keep answering until it has fetched the final state (at most
         ``linger_s`` seconds), and stop (also when the page cannot be written: the error is
         raised). Returns the final page's path."""
-        self._final_served.clear()
         try:
             self.final_page = write_final_page(self.log)
-            if self.requests and not self._closed:
+            if self.requests and not self._closed and not self._final_served.is_set():
                 self._final_served.wait(timeout=max(0.0, float(linger_s)))
         finally:
             self.close()

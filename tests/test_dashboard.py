@@ -162,8 +162,9 @@ def test_the_page_has_axes_units_knobs_and_keeps_the_final_state(tmp_path):
     static = subprocess.run(
         [*browser, "--dump-dom", final.as_uri()], capture_output=True, text=True, timeout=90
     ).stdout
-    for text in (dom, static):
-        assert "The run has ended (completed)" in text and str(final) in text
+    for where, text in (("live page", dom), ("final file", static)):
+        assert "The run has ended (completed)" in text, where
+        assert str(final) in text, where
         assert "objective (mA/min)" in text and "knob setting (A)" in text
         assert text.count('class="ytick"') >= 3 and text.count('class="xtick"') >= 3
         assert "last setting (A)" in text and "01G-QSS4" in text and "02G-QSS3" in text
