@@ -25,6 +25,21 @@ import torch
 
 from pigp_torch._utils import DTYPE
 
+_PRIOR_REJECTED = "physics prior rejected after "
+
+
+def notice_text(message: str) -> str:
+    """An optimizer's notice as the operator reads it. The prior check's rejection is the method
+    working as designed (the readings disagree with the physics prior, so the model relaxes it
+    stage by stage), not a fault, and says so."""
+    if message.startswith(_PRIOR_REJECTED):
+        rest = message[len(_PRIOR_REJECTED) :]
+        return (
+            "prior check (the method working as designed): the readings disagree with the "
+            f"physics prior after {rest}"
+        )
+    return message
+
 
 class ProgressLine:
     r"""Formats (and prints) one line per evaluation.
@@ -110,7 +125,7 @@ class ProgressLine:
         """:func:`pigp_torch.optimize` callback: print the line of one table row."""
         line = self.format(int(row["step"]), [row[n] for n in self.knob_names], float(row["y"]))
         for message in row.get("notices", ()):  # the optimizer's findings, e.g. a prior rejected
-            line += f"\n{self.label + '  ' if self.label else ''}NOTICE  {message}"
+            line += f"\n{self.label + '  ' if self.label else ''}NOTICE  {notice_text(message)}"
         with contextlib.suppress(OSError, ValueError):  # a closed terminal never stops a run
             print(line, file=self.out or sys.stdout, flush=True)
 
@@ -144,7 +159,7 @@ class _ReportingBuilder:
             step = optimizer.n_told - 1
             text = line.format(step, torch.as_tensor(x, dtype=DTYPE).reshape(-1).tolist(), y)
             for notice in optimizer.notices[seen[0] :]:
-                text += f"\n{line.label}  NOTICE  {notice['message']}"
+                text += f"\n{line.label}  NOTICE  {notice_text(notice['message'])}"
             seen[0] = len(optimizer.notices)
             with contextlib.suppress(OSError, ValueError):  # a closed terminal
                 print(text, file=sys.stdout, flush=True)

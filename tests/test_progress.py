@@ -65,3 +65,19 @@ def _dummy_prior() -> PhysicsPrior:
         knob_names=list(ring.knob_names),
         bounds=ring.bounds,
     )
+
+
+def test_a_rejected_prior_reads_as_the_method_working():
+    """The prior check's notice says it is the method working as designed; others pass as is."""
+    from pigp_torch.progress import notice_text
+
+    out = io.StringIO()
+    line = ProgressLine(3, ["a"], unit="A", objective_unit="mA/min", out=out, clock=lambda: 0.0)
+    message = "physics prior rejected after 15 readings: misfit z = 4.1 > 3; stage 2 of 3"
+    line({"step": 0, "a": 0.0, "y": 1.0, "notices": [message, "other"]})
+    notes = [t for t in out.getvalue().splitlines() if "NOTICE" in t]
+    assert notes[0] == (
+        "NOTICE  prior check (the method working as designed): the readings disagree with the "
+        "physics prior after 15 readings: misfit z = 4.1 > 3; stage 2 of 3"
+    )
+    assert notes[1] == "NOTICE  other" and notice_text("other") == "other"
