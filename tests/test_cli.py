@@ -97,8 +97,28 @@ def test_demo_refuses_same_seed(capsys):
 
 def test_demo_refuses_a_machine_among_the_ensemble_rings(capsys):
     """The rings that give the centre prior must not include the machine under test."""
-    assert main(["demo", "--machine-seed", "1002", "--center-ensemble", "3"]) == 2
+    assert main(["demo", "--machine-seed", "1002", "--center-ensemble", "20"]) == 2
     assert "choose model and machine seeds outside them" in capsys.readouterr().err
+
+
+def test_a_too_small_center_ensemble_is_refused_before_any_ring(capsys, monkeypatch):
+    """Fewer ensemble rings than knobs + 1 is refused at once (no ring is built), and --help says
+    the minimum."""
+    import pigp_torch.simulation.ensemble as ens
+
+    def no_rings(*a, **k):
+        raise AssertionError("a ring was computed")
+
+    monkeypatch.setattr(ens, "ensemble_optima", no_rings)
+    for argv in (["demo", "--center-ensemble", "13"],
+                 ["compare", "--center-ensemble", "5", "--seeds", "1"]):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "too small for 13 knobs" in err and "at least 14" in err
+    for cmd in ("demo", "compare", "build-prior"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        assert "at least 14" in " ".join(capsys.readouterr().out.split())
 
 
 @pytest.mark.slow

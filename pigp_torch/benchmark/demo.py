@@ -18,8 +18,13 @@ from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.prior import prior_from_model
 from pigp_torch.progress import reporting_spec
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.ensemble import ENSEMBLE_SEED0, with_center_ensemble
+from pigp_torch.simulation.ensemble import (
+    ENSEMBLE_SEED0,
+    check_ensemble_size,
+    with_center_ensemble,
+)
 from pigp_torch.simulation.sampling import generate_dataset
+from pigp_torch.simulation.spear3 import knob_names_for
 from pigp_torch.surrogate import train_ensemble
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
@@ -70,8 +75,7 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     """
     if a.model_seed == a.machine_seed:
         raise ValueError("the model ring and the machine must have different error seeds")
-    if a.center_ensemble < 0:
-        raise ValueError(f"--center-ensemble must be >= 0, got {a.center_ensemble}")
+    check_ensemble_size(a.center_ensemble, len(knob_names_for("paper13")))  # the demo's knobs
     if a.center_ensemble and {a.model_seed, a.machine_seed} & set(
         range(ENSEMBLE_SEED0, ENSEMBLE_SEED0 + a.center_ensemble)
     ):

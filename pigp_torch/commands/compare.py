@@ -39,8 +39,11 @@ def write_comparison(df, out: Path, title: str) -> None:
 def cmd_compare(args) -> int:
     from pigp_torch.benchmark import run_benchmark
     from pigp_torch.ringargs import ring_spec_from_args
+    from pigp_torch.simulation.ensemble import check_ensemble_size
+    from pigp_torch.simulation.spec import knob_count
 
     ring = ring_spec_from_args(args)
+    check_ensemble_size(args.center_ensemble, knob_count(ring))  # before any ring is computed
     df = run_benchmark(
         args.methods,
         seed_list(args.seeds),
@@ -126,7 +129,8 @@ def register(sub, bench) -> None:
         metavar="N",
         help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
         "where the machine's optimum lies and the mean shape of the peak (~3-7 s a ring; 0: "
-        "box prior and the model ring's shape; default 40)",
+        "box prior and the model ring's shape; otherwise more than the knobs, at least 14 for "
+        "the 13 SPEAR3 knobs; default 40)",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
     p.set_defaults(func=cmd_compare)
