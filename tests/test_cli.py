@@ -192,3 +192,36 @@ def test_the_ensemble_cache_stores_what_it_was_given(tmp_path):
     assert b.provenance["center_ensemble_seeds"] == [1001, 1020, 20]
     with_cached_ensemble(prior, 21, 0, cache, compute)  # another size: computed again
     assert calls == [1, 1]
+
+
+def test_help_names_every_default():
+    """Every option of every command that has a default names it in --help, once: a help text
+    that already gives its default in words gets no second '(default: ...)'."""
+    import argparse
+
+    from pigp_torch.cli import build_parser
+
+    def parsers(p, path):
+        yield path, p
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, child in a.choices.items():
+                    yield from parsers(child, [*path, name])
+
+    checked = 0
+    for path, p in parsers(build_parser(), ["pigp"]):
+        formatter = p._get_formatter()
+        for a in p._actions:
+            if not a.option_strings or a.help is argparse.SUPPRESS:
+                continue
+            if any(a.default is v for v in (None, False, argparse.SUPPRESS)):
+                continue
+            text = formatter._expand_help(a)
+            assert "default" in text.lower(), (path, a.option_strings)
+            assert text.lower().count("default") == 1 or "(default:" not in text, text
+            checked += 1
+    assert checked > 60
+    text = " ".join(build_parser()._subparsers._group_actions[0].choices["train-surrogate"]
+                    .format_help().split())  # fmt: skip
+    assert "--batch-size BATCH_SIZE (default: 1024)" in text
+    assert "networks averaged (default 3) " in text and "(default: 3)" not in text
