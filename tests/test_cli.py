@@ -225,3 +225,24 @@ def test_help_names_every_default():
                     .format_help().split())  # fmt: skip
     assert "--batch-size BATCH_SIZE (default: 1024)" in text
     assert "networks averaged (default 3) " in text and "(default: 3)" not in text
+
+
+def test_summary_table_fits_100_columns():
+    """The printed summary: one row per method, every line within 100 characters, units named."""
+    import math
+
+    import pandas as pd
+
+    from pigp_torch.commands.compare import format_summary
+
+    cols = {"n_runs": 24, "n_reached_95": 20, "budget": 100, "steps_to_95_median": 31.5,
+            "steps_to_95_q25": 22.0, "steps_to_95_q75": 48.25, "gain_20_median": 0.81234,
+            "gain_40_median": 0.95, "gain_100_median": math.nan, "best_f_true_median": 1.69871,
+            "ask_time_s_median": 0.2134}  # fmt: skip
+    table = pd.DataFrame([cols, cols], index=pd.Index(["pigp-physics-box-long-name", "ml2"],
+                                                       name="method"))  # fmt: skip
+    lines = format_summary(table).splitlines()
+    assert max(len(ln) for ln in lines) <= 100
+    assert "mA/min" in lines[1] and lines[2].startswith("pigp-physics-box ")
+    row = lines[3].split()
+    assert row == ["ml2", "24", "20/24", "32", "[22-48]", "0.812", "0.950", "-", "1.6987", "0.213"]
