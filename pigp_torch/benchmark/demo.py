@@ -14,7 +14,7 @@ import pandas as pd
 
 from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
 from pigp_torch.benchmark.methods import METHODS
-from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.benchmark.protocol import machine_loss_map, run_one
 from pigp_torch.prior import prior_from_model
 from pigp_torch.progress import reporting_spec
 from pigp_torch.simulation import Spear3Coupling
@@ -128,8 +128,13 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         if source is not None:
             print(f"      optima of {a.center_ensemble} ensemble rings from the cache "
                   f"({source})", flush=True)  # fmt: skip
-    print(f"[4/4] {', '.join(a.methods)} on machine error seed {a.machine_seed}, "
-          f"{a.budget} evaluations each", flush=True)  # fmt: skip
+    f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
+    print(f"[4/4] {', '.join(a.methods)} on the benchmark's machine {a.machine_seed}, "
+          f"{a.budget} evaluations each: coupling-error seed {a.machine_seed} with its own "
+          f"loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
+          f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it with "
+          f"machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}",
+          flush=True)  # fmt: skip
     names, unit = model_ring.knob_names, model_ring.knob_units
     runs = [
         run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min"),

@@ -28,9 +28,10 @@ def print_plan(setup, records, out) -> None:
     yu, ku = c.objective_unit, c.knob_unit
     if m.kind == "sim":
         ring = f"SPEAR3 {m.optics}" if m.lattice is None else f"lattice {m.lattice}"
+        maps = {"model": "the ring's loss-rate map", "benchmark": "the benchmark's loss-rate map"}
         machine = (
-            f"simulated ring ({ring}, error seed {m.error_seed}, noise {m.noise:g} {yu}, noise "
-            f"seed {m.seed})"
+            f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
+            f"{m.noise:g} {yu}, noise seed {m.seed})"
         )
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"

@@ -99,6 +99,11 @@ class SimMachineConfig(_Section):
             ``{knob: value}`` for every knob (required with ``lattice``, refused without).
         knob_limit: with ``lattice``: the simulator's symmetric knob range (knob units,
             default 30).
+        loss_map: ``"model"`` (default): the ring's own loss-rate map (SPEAR3's constants);
+            ``"benchmark"``: the map that the benchmark and ``pigp demo`` give machine
+            ``error_seed`` (background and Touschek scale perturbed per seed,
+            :func:`pigp_torch.benchmark.protocol.machine_loss_map`) — the same machine as the
+            demo's "machine 1" for ``error_seed: 1``.
     """
 
     kind: Literal["sim"]
@@ -110,6 +115,7 @@ class SimMachineConfig(_Section):
     lattice: Path | None = None
     knob_calibration: float | dict[str, float] | None = None
     knob_limit: float = Field(30.0, gt=0.0)
+    loss_map: Literal["model", "benchmark"] = "model"
 
     @field_validator("lattice")
     @classmethod

@@ -68,17 +68,31 @@ def simulated_ring(config: RunConfig):
     windings (:class:`~pigp_torch.simulation.Spear3Coupling`), or, with ``machine.lattice``, that
     lattice file with the run's knobs as element names
     (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
-    range ``±machine.knob_limit`` in ``knob_unit``).
+    range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
+    loss-rate map that the benchmark gives machine ``error_seed``
+    (:func:`~pigp_torch.benchmark.protocol.machine_loss_map` of the ring's own map).
 
     Raises:
         ConfigError: a knob name the lattice does not have, or a lattice file that does not load.
     """
+    m = config.machine
+    sim = _ring(config, None)
+    if m.loss_map == "benchmark":
+        from pigp_torch.benchmark.protocol import machine_loss_map
+
+        sim = _ring(config, machine_loss_map(m.error_seed, sim.loss_rate_map))
+    return sim
+
+
+def _ring(config: RunConfig, loss_rate_map):
     from pigp_torch.simulation import Spear3Coupling
     from pigp_torch.simulation.spec import RingSpec
 
     m, names = config.machine, config.knob_names
     if m.lattice is None:
-        return Spear3Coupling(m.error_seed, knobs=names, optics=m.optics)
+        return Spear3Coupling(
+            m.error_seed, knobs=names, optics=m.optics, loss_rate_map=loss_rate_map
+        )
     cal = m.knob_calibration
     cal = tuple(float(cal[n]) for n in names) if isinstance(cal, dict) else float(cal)
     spec = RingSpec(
@@ -89,7 +103,7 @@ def simulated_ring(config: RunConfig):
         knob_units=config.knob_unit,
     )
     try:
-        return spec.build(m.error_seed)
+        return spec.build(m.error_seed, loss_rate_map=loss_rate_map)
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"machine.lattice {m.lattice}: {err}") from err
 

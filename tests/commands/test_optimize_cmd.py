@@ -314,3 +314,22 @@ def test_any_ring_from_a_lattice_file(tmp_path, capsys):
     path = write_config(tmp_path, "c.yaml", log="c.jsonl", **dict(over, knobs=wrong))
     assert cli.main(["optimize", "--config", path]) == 2
     assert "NOPE" in capsys.readouterr().err
+
+
+def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
+    """machine.loss_map: benchmark runs the benchmark's (and pigp demo's) machine of that seed:
+    the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
+    import torch
+
+    from pigp_torch.benchmark.protocol import build_machine
+    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import RingSpec
+
+    machine = {"kind": "sim", "error_seed": 1, "noise": 0.0, "loss_map": "benchmark"}
+    assert cli.main(["optimize", "--config", write_config(tmp_path, machine=machine)]) == 0
+    assert "error seed 1 with the benchmark's loss-rate map" in capsys.readouterr().out
+    log = read_log(tmp_path / "run.jsonl")
+    bench = build_machine(1, RingSpec(knobs=tuple(KNOBS)), True)
+    torch.testing.assert_close(log.Y(), bench.loss_rate(log.X()), rtol=1e-9, atol=1e-12)
+    own = Spear3Coupling(1, knobs=KNOBS).loss_rate(log.X())
+    assert float((log.Y() - own).abs().min()) > 1e-3  # another machine than SPEAR3's map gives
