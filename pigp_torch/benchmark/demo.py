@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+import torch
 
 from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
 from pigp_torch.benchmark.methods import METHODS
@@ -69,10 +70,23 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     r"""Run the demo pipeline, printing its stages; returns the scored runs of every method (one
     table, :func:`~pigp_torch.benchmark.run_one`'s columns) and the physics prior used.
 
+    It runs on one torch thread (restored afterwards), as the benchmark's runs do: a GP step is
+    many small linear-algebra calls, and two OpenMP threads on a busy two-core machine spend
+    their time waiting at barriers.
+
     Raises:
         ValueError: model and machine share a seed, either is among the ensemble seeds, a
             negative ensemble size, or an unknown method.
     """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _run_demo(a)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     if a.model_seed == a.machine_seed:
         raise ValueError("the model ring and the machine must have different error seeds")
     check_ensemble_size(a.center_ensemble, len(knob_names_for("paper13")))  # the demo's knobs
