@@ -246,3 +246,5 @@ def test_summary_table_fits_100_columns():
     assert "mA/min" in lines[1] and lines[2].startswith("pigp-physics-box ")
     row = lines[3].split()
     assert row == ["ml2", "24", "20/24", "32", "[22-48]", "0.812", "0.950", "-", "1.6987", "0.213"]
+    table.loc["ml2", "steps_to_95_median"] = 101.0  # the median run did not reach 95 %
+    assert format_summary(table).splitlines()[3].split()[3] == ">100"

@@ -45,11 +45,15 @@ def format_summary(summary, fraction: int = 95) -> str:
     for method, row in summary.iterrows():
         steps = col(row, f"steps_to_{fraction}_median")
         iqr = (col(row, f"steps_to_{fraction}_q25"), col(row, f"steps_to_{fraction}_q75"))
+        budget = col(row, "budget")
         spread = "" if math.isnan(steps) else f" [{num(iqr[0], '.0f')}-{num(iqr[1], '.0f')}]"
+        if not math.isnan(budget) and not steps <= budget:  # not reached within the budget
+            steps, spread = f">{budget:.0f}", ""
         reached = f"{int(col(row, f'n_reached_{fraction}'))}/{int(col(row, 'n_runs'))}"
         lines.append(
             f"{str(method)[:16]:<17}{int(col(row, 'n_runs')):>5}{reached:>9}"
-            f"{num(steps, '.0f') + spread:>18}{num(col(row, 'gain_20_median'), '.3f'):>9}"
+            f"{(steps if isinstance(steps, str) else num(steps, '.0f')) + spread:>18}"
+            f"{num(col(row, 'gain_20_median'), '.3f'):>9}"
             f"{num(col(row, 'gain_40_median'), '.3f'):>9}"
             f"{num(col(row, 'gain_100_median'), '.3f'):>9}"
             f"{num(col(row, 'best_f_true_median'), '.4f'):>10}"
