@@ -248,7 +248,9 @@ def draw_run(data: dict):
             axk.errorbar(xs[i], float(fit["center"][i]), yerr=2 * float(fit["center_std"][i]),
                          fmt="o", ms=3, capsize=2,
                          color=_knob_style(i, len(names))["color"])  # fmt: skip
-        axk.annotate("fitted centre ±2σ", (n + 1, axk.get_ylim()[1]), fontsize=8, va="top")
+        axk.annotate(
+            "fitted centre ±2σ", (n + 1.3, axk.get_ylim()[1]), fontsize=8, va="top", ha="right"
+        )
     axk.set_xlabel("evaluation")
     axk.set_ylabel(f"knob setting ({ku})" if ku else "knob setting")
     axk.grid(alpha=0.3)
