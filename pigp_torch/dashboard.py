@@ -31,16 +31,11 @@ import warnings
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from pigp_torch.config.schema import logged_units
 from pigp_torch.runlog import read_log
 
 #: Hosts the dashboard may listen on.
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
-
-
-def _units(header: dict) -> tuple[str, str]:
-    """``(objective_unit, knob_unit)`` of the logged configuration (default mA/min and A)."""
-    config = header.get("config") or {}
-    return str(config.get("objective_unit") or "mA/min"), str(config.get("knob_unit") or "A")
 
 
 def _notices(records) -> list[str]:
@@ -95,7 +90,7 @@ def run_state(path: str | Path) -> dict:
         move, knob = deltas[i], (records.knob_names[i] if records.knob_names else f"x{i}")
     budget = records.starts[-1].get("budget") if records.starts else h.get("budget")
     end = records.last_end
-    objective_unit, knob_unit = _units(h)
+    objective_unit, knob_unit = logged_units(h)
     return {
         "method": h.get("method"),
         "budget": budget,

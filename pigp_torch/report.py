@@ -37,6 +37,7 @@ from pathlib import Path
 import torch
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.config.schema import logged_units
 from pigp_torch.runlog import read_log
 
 
@@ -104,9 +105,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
     bounds = torch.tensor(h["bounds"], dtype=DTYPE) if h.get("bounds") else None
     config = _load_run_config(records)
     maximize = bool(h.get("maximize", True))
-    from pigp_torch.commands.optimize_output import log_units
-
-    objective_unit, unit = log_units(h)
+    objective_unit, unit = logged_units(h)
     true = optimum = None
     sigma = noise
     if config is not None and config.machine.kind == "sim":

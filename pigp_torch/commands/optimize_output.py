@@ -7,18 +7,13 @@ import contextlib
 import math
 from pathlib import Path
 
+from pigp_torch.config.schema import logged_units as log_units
+
 
 def fmt_knobs(names, values, unit: str = "") -> str:
     """``name=value unit, ...``."""
     u = f" {unit}" if unit else ""
     return ", ".join(f"{n}={v:.6g}{u}" for n, v in zip(names, values, strict=True))
-
-
-def log_units(header: dict) -> tuple[str, str]:
-    """``(objective_unit, knob_unit)`` of a run log's header (its configuration's); a log written
-    before runs named their units gets the SPEAR3 defaults ``("mA/min", "A")``."""
-    config = header.get("config") or {}
-    return str(config.get("objective_unit") or "mA/min"), str(config.get("knob_unit") or "A")
 
 
 def print_plan(setup, records, out) -> None:

@@ -391,6 +391,17 @@ def _same_knobs(key: str, mapping: dict, names: list[str], what: str = "missing 
         raise ValueError(f"{key}: {extra} are not configured knobs")
 
 
+def logged_units(header: dict) -> tuple[str, str]:
+    """``(objective_unit, knob_unit)`` of a run log's header (its configuration's); a log written
+    before run files named their units gets the defaults, ``("mA/min", "A")``."""
+    config = header.get("config") or {}
+    fields = RunConfig.model_fields
+    return (
+        str(config.get("objective_unit") or fields["objective_unit"].default),
+        str(config.get("knob_unit") or fields["knob_unit"].default),
+    )
+
+
 def config_digest(dump: dict) -> str:
     """Hex sha256 of a configuration dump (``model_dump(mode="json")``), canonical JSON."""
     text = json.dumps(dump, sort_keys=True, separators=(",", ":"), allow_nan=False)

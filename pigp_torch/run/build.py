@@ -78,7 +78,7 @@ def simulated_ring(config: RunConfig):
     m = config.machine
     sim = _ring(config, None)
     if m.loss_map == "benchmark":
-        from pigp_torch.benchmark.protocol import machine_loss_map
+        from pigp_torch.simulation.calibration import machine_loss_map
 
         sim = _ring(config, machine_loss_map(m.error_seed, sim.loss_rate_map))
     return sim

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from pigp_torch._multistart import find_optimum
@@ -95,3 +96,24 @@ def calibrate_loss_rate_map(
         if f_inf >= floor:
             return f_inf, gain
     return floor, (off - floor) / p_off
+
+
+#: Spread of a machine's loss-rate map around the model's: background factor 1 + d, d uniform
+#: on ``background``; Touschek-scale factor 1 + e, e uniform on ``touschek``.
+MAP_SPREAD = {"background": (-0.8, 0.3), "touschek": (-0.3, 0.3)}
+
+
+def machine_loss_map(machine_seed: int, model_map, spread=None) -> tuple[float, float]:
+    r"""The loss-rate map :math:`(f_\infty (1 + d), g (1 + \epsilon))` of machine
+    ``machine_seed`` from the model's map ``(f_inf, g)`` (mA/min, mA/min m²): the benchmark's
+    machines (:mod:`pigp_torch.benchmark.protocol`) and run files with ``loss_map: benchmark``.
+
+    :math:`d` and :math:`\epsilon` are uniform on the ranges of ``spread`` (default
+    :data:`MAP_SPREAD`), drawn from a generator seeded by the machine seed alone (the same map
+    for every method and every process).
+    """
+    spread = MAP_SPREAD if spread is None else spread
+    rng = np.random.default_rng([int(machine_seed), 0x4C4F5353])  # a stream of its own
+    d = rng.uniform(*spread["background"])
+    e = rng.uniform(*spread["touschek"])
+    return float(model_map[0]) * (1.0 + d), float(model_map[1]) * (1.0 + e)
