@@ -11,9 +11,9 @@ from pigp_torch.config.schema import logged_units as log_units
 
 
 def fmt_knobs(names, values, unit: str = "") -> str:
-    """``name=value unit, ...``."""
-    u = f" {unit}" if unit else ""
-    return ", ".join(f"{n}={v:.6g}{u}" for n, v in zip(names, values, strict=True))
+    """``name=value, name=value (unit)``: the unit once, at the end."""
+    text = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
+    return f"{text} ({unit})" if unit else text
 
 
 def print_plan(setup, records, out) -> None:

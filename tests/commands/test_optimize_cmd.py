@@ -69,7 +69,7 @@ def test_a_run_prints_steps_and_a_summary_and_restores_the_knobs(tmp_path, capsy
     assert f"best y = {y:.6g} mA/min at evaluation {step + 1}" in out
     # units on every number: readings in mA/min, knob moves and settings in A
     assert " mA/min  best = " in steps[1] and " A (0" in steps[1]
-    assert "readback: 01G-QSS4=0.002 A, 02G-QSS3=-0.001 A" in out
+    assert "readback: 01G-QSS4=0.002, 02G-QSS3=-0.001 (A)" in out
     assert "status: completed" in out and "knobs restored to initial" in out
     assert log.last_end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
     assert log.header["config"]["budget"] == 5 and log.header["knob_names"] == KNOBS
@@ -277,7 +277,7 @@ def test_units_from_the_run_file_are_printed(tmp_path, capsys):
     assert "lower (mrad)" in out and "noise 0.04 counts/s" in out
     steps = [line for line in out.splitlines() if line.startswith("evaluation ")]
     assert " counts/s  best = " in steps[2] and " mrad (" in steps[2]
-    assert "mA/min" not in out and " A," not in out
+    assert "mA/min" not in out and "(A)" not in out and "(mrad)" in out
     assert read_log(tmp_path / "run.jsonl").header["config"]["knob_unit"] == "mrad"
 
 

@@ -241,7 +241,7 @@ def test_a_restore_that_fails_exits_3_with_the_last_setpoint(
     assert end["restored"] is False and end["restore_attempts"] == 2
     assert end["last_setpoint"] == log.last_intent["x"]  # the restore ramp's last write
     assert log.last_intent["purpose"] == "restore initial"
-    last = ", ".join(f"{n}={v:.6g} A" for n, v in zip(KNOBS, end["last_setpoint"], strict=True))
+    last = ", ".join(f"{n}={v:.6g}" for n, v in zip(KNOBS, end["last_setpoint"], strict=True))
     assert f"last setpoint written: {last}" in captured.out
 
 
