@@ -51,6 +51,38 @@ class _BenchCommands:
         return self._bench.add_parser(*args, **kwargs)
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Help that shows every option's default: ``(default: X)`` is appended to an option's help
+    unless the help already names its default (the word "default") or there is none to show (a
+    flag, ``None``, a positional argument). ``argparse.ArgumentDefaultsHelpFormatter`` would
+    repeat the defaults that the help strings already give in words."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        shown = not any(action.default is v for v in (None, False, argparse.SUPPRESS))
+        if not action.option_strings or not shown or "default" in text.lower():
+            return text
+        return f"{text} (default: %(default)s)".strip()
+
+
+class RawDefaultsHelpFormatter(DefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """:class:`DefaultsHelpFormatter` that keeps the description and epilog as written."""
+
+
+def _with_defaults(parser: argparse.ArgumentParser) -> None:
+    """Give ``parser`` and its sub-parsers (recursively) the formatters that show defaults."""
+    if parser.formatter_class is argparse.RawDescriptionHelpFormatter:
+        parser.formatter_class = RawDefaultsHelpFormatter
+    elif parser.formatter_class is argparse.HelpFormatter:
+        parser.formatter_class = DefaultsHelpFormatter
+    for action in parser._actions:
+        if action.help is None and action.option_strings and action.default is not None:
+            action.help = "(default: %(default)s)"  # argparse shows no help line without text
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _with_defaults(child)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pigp",
@@ -60,6 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = _BenchCommands(sub)
     for name in COMMAND_MODULES:
         importlib.import_module(f"pigp_torch.commands.{name}").register(sub, bench)
+    _with_defaults(parser)
     return parser
 
 

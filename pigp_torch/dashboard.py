@@ -3,11 +3,20 @@ r"""A live page of an online run: ``pigp optimize --dashboard``.
 :class:`Dashboard` serves two URLs on 127.0.0.1 from a background thread:
 
 * ``/`` — a static, self-contained HTML page (no external scripts) that fetches ``/state.json``
-  every ``poll_ms`` milliseconds and shows the current step (``step N of M``), the last reading,
-  the best so far, the largest knob move, the run's status and a plot of the readings and the
-  best so far;
+  every ``poll_ms`` milliseconds and shows the current step (``step N of M``), the last reading
+  and the best so far with the objective's unit, the largest knob move with the knobs' unit, the
+  run's status, two plots with numbered axes and units (the readings and the best so far against
+  the evaluation; every knob's setting against the evaluation, each in its own colour, with the
+  bounds), a table of the knobs' last settings and the run's notices;
 * ``/state.json`` — :func:`run_state` of the run log, read afresh at every request (the log is
   the only channel between the run and the page: the optimizer is never touched).
+
+After the run. :meth:`Dashboard.finish` writes the final state as a self-contained page next to
+the run log (``<log stem>_dashboard.html``: the same page with the state embedded, no polling, no
+server needed) and keeps answering for at most ``linger_s`` seconds, until an open page has
+fetched the final state (then the page stops polling and names that file); then the server
+stops. ``pigp optimize --dashboard`` prints the file's path. Chosen over serving on after the run:
+the command returns when the run is over, and the final page outlives any server.
 
 The server only listens on the loopback interface, answers one request at a time per thread, and
 stops when :meth:`Dashboard.close` is called or, at the latest, after ``lifetime_s`` seconds.
@@ -22,25 +31,47 @@ import warnings
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from pigp_torch.config.schema import logged_units
 from pigp_torch.runlog import read_log
 
 #: Hosts the dashboard may listen on.
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
+def _notices(records) -> list[str]:
+    """The run's events as short lines (evaluations counted from 1)."""
+    out = [f"resumed at evaluation {int(s.get('first_step', 0)) + 1}" for s in records.starts[1:]]
+    for r in records.discarded:
+        out.append(f"reading discarded at evaluation {int(r['step']) + 1}: {r.get('reason', '')}")
+    for r in records.notices:
+        out.append(f"evaluation {int(r['step']) + 1}: {r.get('message', '')}")
+    end = records.last_end
+    if end is not None:
+        reason = f": {end['reason']}" if end.get("reason") else ""
+        restored = end.get("restored_to")
+        if end.get("restored") is False:
+            restored = f"{restored}: NOT DONE, see the run log"
+        out.append(f"ended {end['status']}{reason}; knobs restored to {restored}")
+    return out
+
+
 def run_state(path: str | Path) -> dict:
     r"""What the page shows, from the run log at ``path``.
 
     Returns:
-        ``{"method", "budget", "n", "status", "steps", "y", "best", "last_y", "best_y",
-        "move", "move_knob", "knob_names"}``: ``steps`` counted from 1, ``best`` the best reading
-        so far at each step (by the header's ``maximize``, default true), ``move`` the largest
-        knob change of the last evaluation (``None`` before the second), ``status`` the last end
-        record's status or ``"running"`` (``"waiting"`` before the log exists).
+        ``{"method", "budget", "n", "status", "ended", "steps", "y", "best", "last_y",
+        "best_y", "move", "move_knob", "knob_names", "x", "bounds", "objective_unit",
+        "knob_unit", "notices"}``: ``steps`` counted from 1, ``best`` the best reading so far at
+        each step (by the header's ``maximize``, default true), ``move`` the largest knob change
+        of the last evaluation (``None`` before the second), ``x`` the knob settings of every
+        evaluation (``n x d``, knob units), ``bounds`` ``[lower, upper]`` lists or ``None``,
+        ``status`` the last end record's status or ``"running"`` (``"waiting"`` before the log
+        exists), ``ended`` whether the log has an end record, ``notices`` the run's events.
     """
     path = Path(path)
     if not path.exists():
-        return {"status": "waiting", "n": 0, "steps": [], "y": [], "best": [], "budget": None}
+        return {"status": "waiting", "n": 0, "steps": [], "y": [], "best": [], "budget": None,
+                "ended": False, "x": [], "notices": []}  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a line being written is skipped, read next time
         records = read_log(path)
@@ -59,11 +90,13 @@ def run_state(path: str | Path) -> dict:
         move, knob = deltas[i], (records.knob_names[i] if records.knob_names else f"x{i}")
     budget = records.starts[-1].get("budget") if records.starts else h.get("budget")
     end = records.last_end
+    objective_unit, knob_unit = logged_units(h)
     return {
         "method": h.get("method"),
         "budget": budget,
         "n": len(ys),
         "status": "running" if end is None else end["status"],
+        "ended": end is not None,
         "steps": list(range(1, len(ys) + 1)),
         "y": ys,
         "best": best,
@@ -72,66 +105,190 @@ def run_state(path: str | Path) -> dict:
         "move": move,
         "move_knob": knob,
         "knob_names": records.knob_names,
+        "x": [[float(v) for v in r["x"]] for r in records.evaluations],
+        "bounds": h.get("bounds"),
+        "maximize": maximize,
+        "objective_unit": objective_unit,
+        "knob_unit": knob_unit,
+        "notices": _notices(records),
     }
 
 
 PAGE = """<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>pigp run</title>
 <style>body{font-family:sans-serif;margin:1.5em} #step{font-size:1.6em;font-weight:bold}
-td{padding:0 1em 0 0} svg{border:1px solid #ccc;background:#fff}</style></head>
+td{padding:0 1em 0 0} svg{border:1px solid #ccc;background:#fff;margin:0.3em 0}
+#final{background:#eef6ee;padding:0.4em;display:none} .num{text-align:right}
+#notices{font-family:monospace;font-size:0.9em}</style></head>
 <body><h2 id="title">pigp run</h2><div id="step">waiting for the run log ...</div>
+<p id="final"></p>
 <table><tr><td>last reading</td><td id="last">-</td></tr>
 <tr><td>best so far</td><td id="best">-</td></tr>
 <tr><td>largest knob move</td><td id="move">-</td></tr>
 <tr><td>status</td><td id="status">-</td></tr></table>
-<svg id="plot" width="720" height="300"></svg>
+<svg id="plot" width="760" height="300"></svg>
+<div style="display:flex;gap:1em;align-items:flex-start">
+<svg id="knobs" width="760" height="260"></svg>
+<table id="knobtable" style="font-size:0.85em"></table></div>
+<h3>notices</h3><ul id="notices"><li>none</li></ul>
 <p style="color:#888">updated <span id="updates">0</span> times; steps seen:
 <span id="seen"></span></p>
 <script>
 const POLL_MS = __POLL_MS__;
+const INITIAL = __STATE__;
+const COLORS = ["#1f77b4", "#aec7e8", "#ff7f0e", "#ffbb78", "#2ca02c", "#98df8a", "#d62728",
+  "#ff9896", "#9467bd", "#c5b0d5", "#8c564b", "#c49c94", "#e377c2", "#f7b6d2", "#7f7f7f",
+  "#c7c7c7", "#bcbd22", "#dbdb8d", "#17becf", "#9edae5"];
+const DASHES = ["", "6,3", "2,2", "6,2,2,2"];
 let lastN = -1, updates = 0, seen = [];
 function fmt(v) { return v === null || v === undefined ? "-" : Number(v).toPrecision(6); }
-function line(xs, ys, x0, x1, y0, y1, color) {
-  const W = 720, H = 300, m = 30;
-  const px = x => m + (x - x0) / Math.max(1e-12, x1 - x0) * (W - 2 * m);
-  const py = y => H - m - (y - y0) / Math.max(1e-12, y1 - y0) * (H - 2 * m);
-  const pts = xs.map((x, i) => px(x).toFixed(1) + "," + py(ys[i]).toFixed(1)).join(" ");
-  return '<polyline fill="none" stroke="' + color + '" stroke-width="1.5" points="' + pts + '"/>';
+function esc(t) { return String(t).replace(/[&<>"]/g, c => "&#" + c.charCodeAt(0) + ";"); }
+function ticks(lo, hi, n) {
+  const span = Math.max(hi - lo, 1e-12), raw = span / n;
+  const mag = Math.pow(10, Math.floor(Math.log10(raw)));
+  const step = [1, 2, 5, 10].map(f => f * mag).find(v => v >= raw);
+  const out = [];
+  for (let t = Math.ceil(lo / step) * step; t <= hi + 1e-9 * span; t += step) out.push(t);
+  return out;
+}
+function tickText(t) { return Math.abs(t) < 1e-12 ? "0" : Number(t.toPrecision(6)).toString(); }
+// series: [{xs, ys, color, dash, dots}], hlines: [{y, color}]
+function chart(id, series, x0, x1, y0, y1, xlabel, ylabel, hlines, legend) {
+  const svg = document.getElementById(id);
+  const W = +svg.getAttribute("width"), H = +svg.getAttribute("height");
+  const L = 70, R = 15, T = 12, B = 42;
+  if (y1 - y0 < 1e-12) { y0 -= 0.5; y1 += 0.5; }
+  const pad = 0.05 * (y1 - y0); y0 -= pad; y1 += pad;
+  const px = x => L + (x - x0) / Math.max(1e-12, x1 - x0) * (W - L - R);
+  const py = y => H - B - (y - y0) / (y1 - y0) * (H - T - B);
+  let g = '<rect x="' + L + '" y="' + T + '" width="' + (W - L - R) + '" height="' +
+    (H - T - B) + '" fill="none" stroke="#444"/>';
+  for (const t of ticks(x0, x1, 8)) {
+    g += '<line x1="' + px(t) + '" x2="' + px(t) + '" y1="' + T + '" y2="' + (H - B) +
+      '" stroke="#eee"/><text class="xtick" x="' + px(t) + '" y="' + (H - B + 14) +
+      '" font-size="11" text-anchor="middle">' + tickText(t) + '</text>';
+  }
+  for (const t of ticks(y0, y1, 6)) {
+    g += '<line x1="' + L + '" x2="' + (W - R) + '" y1="' + py(t) + '" y2="' + py(t) +
+      '" stroke="#eee"/><text class="ytick" x="' + (L - 5) + '" y="' + (py(t) + 4) +
+      '" font-size="11" text-anchor="end">' + tickText(t) + '</text>';
+  }
+  for (const h of hlines) {
+    g += '<line x1="' + L + '" x2="' + (W - R) + '" y1="' + py(h.y) + '" y2="' + py(h.y) +
+      '" stroke="' + h.color + '" stroke-dasharray="5,3"/>';
+  }
+  for (const s of series) {
+    const pts = s.xs.map((x, i) => px(x).toFixed(1) + "," + py(s.ys[i]).toFixed(1));
+    if (s.dots) {
+      g += pts.map(p => '<circle r="2.5" fill="' + s.color + '" cx="' + p.split(",")[0] +
+        '" cy="' + p.split(",")[1] + '"/>').join("");
+    } else {
+      g += '<polyline fill="none" stroke="' + s.color + '" stroke-width="1.5" ' +
+        'stroke-dasharray="' + (s.dash || "") + '" points="' + pts.join(" ") + '"/>';
+    }
+  }
+  if (legend) {
+    g += '<text x="' + (L + 8) + '" y="' + (T + 16) + '" font-size="12">' + legend + '</text>';
+  }
+  g += '<text class="xlabel" x="' + (L + (W - L - R) / 2) + '" y="' + (H - 6) +
+    '" font-size="12" text-anchor="middle">' + esc(xlabel) + '</text>';
+  g += '<text class="ylabel" transform="translate(14,' + (T + (H - T - B) / 2) +
+    ') rotate(-90)" font-size="12" text-anchor="middle">' + esc(ylabel) + '</text>';
+  svg.innerHTML = g;
 }
 function draw(s) {
-  const svg = document.getElementById("plot");
-  if (!s.y.length) { svg.innerHTML = ""; return; }
-  const all = s.y.concat(s.best), y0 = Math.min(...all), y1 = Math.max(...all);
-  const x1 = Math.max(s.budget || s.n, 2);
-  svg.innerHTML = line(s.steps, s.y, 1, x1, y0, y1, "#1f77b4") +
-    line(s.steps, s.best, 1, x1, y0, y1, "#d62728") +
-    '<text x="35" y="20" font-size="12">readings (blue), best so far (red)</text>';
+  if (!s.y.length) { return; }
+  const yu = s.objective_unit || "", ku = s.knob_unit || "";
+  const all = s.y.concat(s.best), x1 = Math.max(s.budget || s.n, 2);
+  chart("plot", [{xs: s.steps, ys: s.y, color: "#1f77b4", dots: true},
+                 {xs: s.steps, ys: s.best, color: "#d62728"}],
+        1, x1, Math.min(...all), Math.max(...all), "evaluation", "objective (" + yu + ")", [],
+        '<tspan fill="#1f77b4">&#9679; readings</tspan>   ' +
+        '<tspan fill="#d62728">&#8212; best so far</tspan>');
+  const names = s.knob_names || [], d = names.length;
+  const xs = s.x || [], flat = [].concat(...xs);
+  const lo = s.bounds ? Math.min(...s.bounds[0]) : Math.min(...flat);
+  const hi = s.bounds ? Math.max(...s.bounds[1]) : Math.max(...flat);
+  const series = names.map((n, i) => ({xs: s.steps, ys: xs.map(r => r[i]),
+    color: COLORS[i % 20], dash: DASHES[Math.floor(i / 20) % 4]}));
+  const hl = s.bounds ? [...new Set(s.bounds[0].concat(s.bounds[1]))].map(
+    y => ({y: y, color: "#444"})) : [];
+  chart("knobs", series, 1, x1, lo, hi, "evaluation", "knob setting (" + ku + ")", hl,
+        s.bounds ? "- - - bounds" : "");
+  const last = xs.length ? xs[xs.length - 1] : [];
+  let rows = '<tr><th></th><th>knob</th><th>last setting (' + esc(ku) + ')</th></tr>';
+  names.forEach((n, i) => {
+    rows += '<tr><td style="color:' + COLORS[i % 20] + '">&#9632;</td><td>' + esc(n) +
+      '</td><td class="num">' + fmt(last[i]) + '</td></tr>';
+  });
+  document.getElementById("knobtable").innerHTML = rows;
+}
+function show(s) {
+  const yu = s.objective_unit ? " " + s.objective_unit : "";
+  const ku = s.knob_unit ? " " + s.knob_unit : "";
+  document.getElementById("title").textContent = "pigp run: " + (s.method || "");
+  document.getElementById("step").textContent =
+    "step " + s.n + " of " + (s.budget === null ? "?" : s.budget);
+  document.getElementById("last").textContent = s.last_y === null ? "-" : fmt(s.last_y) + yu;
+  document.getElementById("best").textContent = s.best_y === null ? "-" : fmt(s.best_y) + yu;
+  document.getElementById("move").textContent =
+    s.move === null || s.move === undefined ? "-" : fmt(s.move) + ku + " (" + s.move_knob + ")";
+  const notes = s.notices || [];
+  document.getElementById("notices").innerHTML =
+    notes.length ? notes.map(t => "<li>" + esc(t) + "</li>").join("") : "<li>none</li>";
+  draw(s);
+}
+function ended(s) {
+  const box = document.getElementById("final");
+  box.style.display = "block";
+  box.textContent = "The run has ended (" + s.status + "); this is its final state." +
+    (s.final_page ? " Saved as " + s.final_page + " (open it any time)." : "");
 }
 async function poll() {
   try {
     const s = await (await fetch("state.json", {cache: "no-store"})).json();
-    if (s.n !== lastN) {
+    if (s.n !== lastN || s.ended) {
       lastN = s.n; updates += 1; seen.push(s.n);
-      document.getElementById("title").textContent = "pigp run: " + (s.method || "");
-      document.getElementById("step").textContent =
-        "step " + s.n + " of " + (s.budget === null ? "?" : s.budget);
-      document.getElementById("last").textContent = fmt(s.last_y);
-      document.getElementById("best").textContent = fmt(s.best_y);
-      document.getElementById("move").textContent =
-        s.move === null || s.move === undefined ? "-" : fmt(s.move) + " (" + s.move_knob + ")";
       document.getElementById("updates").textContent = updates;
       document.getElementById("seen").textContent = seen.join(",");
-      draw(s);
+      show(s);
     }
     document.getElementById("status").textContent = s.status;
+    if (s.ended) { ended(s); return; }  // the final state: no more polling
   } catch (e) {
     document.getElementById("status").textContent = "no connection to the run";
   }
   setTimeout(poll, POLL_MS);
 }
-poll();
+if (INITIAL) {
+  show(INITIAL); ended(INITIAL);
+  document.getElementById("updates").parentNode.style.display = "none";
+  document.getElementById("status").textContent = INITIAL.status;
+} else { poll(); }
 </script></body></html>
 """
+
+
+def page_html(poll_ms: int = 1000, state: dict | None = None) -> str:
+    """The page: live (``state`` ``None``: it polls ``state.json`` every ``poll_ms``) or final
+    (``state`` embedded, no polling, no server needed)."""
+    embedded = "null" if state is None else json.dumps(state).replace("</", "<\\/")
+    return PAGE.replace("__POLL_MS__", str(int(poll_ms))).replace("__STATE__", embedded)
+
+
+def final_page_path(log: str | Path) -> Path:
+    """Where the final page of the run log ``log`` goes: ``<log stem>_dashboard.html`` beside it."""
+    log = Path(log)
+    return log.with_name(log.stem + "_dashboard.html")
+
+
+def write_final_page(log: str | Path, path: str | Path | None = None) -> Path:
+    """Write the run's final state as a self-contained page (default :func:`final_page_path`)."""
+    path = Path(path) if path is not None else final_page_path(log)
+    state = run_state(log)
+    state["final_page"] = str(path)
+    path.write_text(page_html(state=state), encoding="utf-8")
+    return path
 
 
 class Dashboard:
@@ -144,6 +301,9 @@ class Dashboard:
         poll_ms: how often the page asks for the state (default 1000 ms).
         lifetime_s: the server stops after this many seconds at the latest (default 12 h).
         on_state: called with the state before each ``/state.json`` answer (monitoring, tests).
+
+    After the run, :meth:`finish` writes the final page and stops the server once an open page
+    has the final state (bounded wait).
 
     Raises:
         ValueError: a host other than the loopback, a non-positive poll interval or lifetime.
@@ -168,7 +328,10 @@ class Dashboard:
             raise ValueError(f"lifetime_s must be positive and finite, got {lifetime_s}")
         self.log = Path(log)
         self.requests = 0
-        page = PAGE.replace("__POLL_MS__", str(int(poll_ms))).encode()
+        #: the final page written by :meth:`finish` (``None`` before)
+        self.final_page: Path | None = None
+        self._final_served = threading.Event()
+        page = page_html(poll_ms).encode()
         dashboard = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -186,6 +349,8 @@ class Dashboard:
                         state = {"status": f"unreadable log: {err}", "n": 0, "y": [],
                                  "best": [], "steps": [], "budget": None}  # fmt: skip
                     dashboard.requests += 1
+                    if dashboard.final_page is not None:
+                        state["final_page"] = str(dashboard.final_page)
                     if on_state is not None:
                         on_state(state)
                     body, kind = json.dumps(state).encode(), "application/json"
@@ -198,6 +363,8 @@ class Dashboard:
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
+                if route == "/state.json" and state.get("ended"):
+                    dashboard._final_served.set()  # an open page has the final state
 
         self._server = ThreadingHTTPServer((host, int(port)), Handler)
         self._server.daemon_threads = True
@@ -213,6 +380,19 @@ class Dashboard:
         """``http://127.0.0.1:PORT/``."""
         host, port = self._server.server_address[:2]
         return f"http://{host}:{port}/"
+
+    def finish(self, linger_s: float = 5.0) -> Path:
+        """The run has ended: write the final page (:func:`write_final_page`), then, if a page
+        has been polling, keep answering until it has fetched the final state (at most
+        ``linger_s`` seconds), and stop (also when the page cannot be written: the error is
+        raised). Returns the final page's path."""
+        try:
+            self.final_page = write_final_page(self.log)
+            if self.requests and not self._closed and not self._final_served.is_set():
+                self._final_served.wait(timeout=max(0.0, float(linger_s)))
+        finally:
+            self.close()
+        return self.final_page
 
     def close(self) -> None:
         """Stop serving (idempotent; also called by the lifetime timer)."""

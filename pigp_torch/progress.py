@@ -5,10 +5,11 @@ r"""One progress line per evaluation: step N of M, reading, best so far, largest
 so that every ``tell`` of its optimizer prints the same line (how ``pigp demo`` shows its runs
 without touching the benchmark's loop). A line looks like::
 
-    evaluation   12/100  y = 1.23456  best = 1.34567  move 2.5 A (05G-QSS3)  0.84 s/step
+    evaluation   12/100  y = 1.2346 mA/min  best = 1.3457 mA/min  move 2.5 A (05G-QSS3)  0.84 s/step
 
-The move is the largest absolute change of one knob from the previous evaluation (``-`` at the
-first one), in knob units; the time is the wall time since the previous line (for the first line:
+The reading and the best are in the objective's unit; the
+move is the largest absolute change of one knob from the previous evaluation (``-`` at the first
+one), in the knobs' unit; the time is the wall time since the previous line (for the first line:
 since the reporter was made).
 """
 
@@ -24,6 +25,21 @@ import torch
 
 from pigp_torch._utils import DTYPE
 
+_PRIOR_REJECTED = "physics prior rejected after "
+
+
+def notice_text(message: str) -> str:
+    """An optimizer's notice as the operator reads it. The prior check's rejection is the method
+    working as designed (the readings disagree with the physics prior, so the model relaxes it
+    stage by stage), not a fault, and says so."""
+    if message.startswith(_PRIOR_REJECTED):
+        rest = message[len(_PRIOR_REJECTED) :]
+        return (
+            "prior check (the method working as designed): the readings disagree with the "
+            f"physics prior after {rest}"
+        )
+    return message
+
 
 class ProgressLine:
     r"""Formats (and prints) one line per evaluation.
@@ -33,6 +49,8 @@ class ProgressLine:
         knob_names: the knob columns of the rows (their order).
         maximize: direction of "best" (default: the largest reading).
         unit: knob unit printed after the move (``"A"`` on SPEAR3; default none).
+        objective_unit: unit printed after the reading and the best (``"mA/min"`` for the loss
+            rate; default none).
         label: text put before the line (e.g. the method), default none.
         out: stream written to (default ``sys.stdout``); a closed stream is ignored.
         clock: seconds, for the time per step (default :func:`time.perf_counter`).
@@ -48,6 +66,7 @@ class ProgressLine:
         *,
         maximize: bool = True,
         unit: str = "",
+        objective_unit: str = "",
         label: str = "",
         out=None,
         clock=time.perf_counter,
@@ -60,6 +79,7 @@ class ProgressLine:
             raise ValueError("no knob names")
         self.maximize = bool(maximize)
         self.unit = str(unit)
+        self.objective_unit = str(objective_unit)
         self.label = str(label)
         self.out = out
         self._clock = clock
@@ -95,16 +115,17 @@ class ProgressLine:
             move = f"move {float(delta[i]):.3g}{unit} ({self.knob_names[i]})"
         self.previous = x
         head = f"{self.label}  " if self.label else ""
+        yu = f" {self.objective_unit}" if self.objective_unit else ""
         return (
-            f"{head}evaluation {step + 1:>4}/{self.budget}  y = {y:.6g}  best = {self.best:.6g}  "
-            f"{move}  {dt:.2f} s/step"
+            f"{head}evaluation {step + 1:>4}/{self.budget}  y = {y:.6g}{yu}  best = "
+            f"{self.best:.6g}{yu}  {move}  {dt:.2f} s/step"
         )
 
     def __call__(self, row: dict) -> None:
         """:func:`pigp_torch.optimize` callback: print the line of one table row."""
         line = self.format(int(row["step"]), [row[n] for n in self.knob_names], float(row["y"]))
         for message in row.get("notices", ()):  # the optimizer's findings, e.g. a prior rejected
-            line += f"\n{self.label + '  ' if self.label else ''}NOTICE  {message}"
+            line += f"\n{self.label + '  ' if self.label else ''}NOTICE  {notice_text(message)}"
         with contextlib.suppress(OSError, ValueError):  # a closed terminal never stops a run
             print(line, file=self.out or sys.stdout, flush=True)
 
@@ -112,9 +133,12 @@ class ProgressLine:
 class _ReportingBuilder:
     """Picklable builder of :func:`reporting_spec` (runs in worker processes too)."""
 
-    def __init__(self, build, name: str, budget: int, knob_names, unit: str) -> None:
+    def __init__(
+        self, build, name: str, budget: int, knob_names, unit: str, objective_unit: str = ""
+    ) -> None:
         self.build, self.name, self.budget = build, name, int(budget)
         self.knob_names, self.unit = list(knob_names), unit
+        self.objective_unit = objective_unit
 
     def __call__(self, ctx, **options):
         optimizer = self.build(ctx, **options)
@@ -123,6 +147,7 @@ class _ReportingBuilder:
             self.knob_names,
             maximize=getattr(optimizer, "maximize", True),
             unit=self.unit,
+            objective_unit=self.objective_unit,
             label=f"{self.name:>14}",
         )
         tell = optimizer.tell
@@ -134,7 +159,7 @@ class _ReportingBuilder:
             step = optimizer.n_told - 1
             text = line.format(step, torch.as_tensor(x, dtype=DTYPE).reshape(-1).tolist(), y)
             for notice in optimizer.notices[seen[0] :]:
-                text += f"\n{line.label}  NOTICE  {notice['message']}"
+                text += f"\n{line.label}  NOTICE  {notice_text(notice['message'])}"
             seen[0] = len(optimizer.notices)
             with contextlib.suppress(OSError, ValueError):  # a closed terminal
                 print(text, file=sys.stdout, flush=True)
@@ -143,13 +168,16 @@ class _ReportingBuilder:
         return optimizer
 
 
-def reporting_spec(spec, budget: int, knob_names: Sequence[str], *, unit: str = ""):
+def reporting_spec(
+    spec, budget: int, knob_names: Sequence[str], *, unit: str = "", objective_unit: str = ""
+):
     r"""A copy of the benchmark method ``spec`` whose optimizer prints a :class:`ProgressLine`
-    (labelled with the method's name) to stdout after every ``tell``.
+    (labelled with the method's name; knob moves in ``unit``, readings in ``objective_unit``) to
+    stdout after every ``tell``.
 
     The optimizer is the one ``spec`` builds, unchanged (same class, name, seed and proposals);
     only its instance's ``tell`` is wrapped, so the run's numbers are those of ``spec``. The
     optimizer must count its tells (``n_told``, as every optimizer of the package does).
     """
-    builder = _ReportingBuilder(spec.builder, spec.name, budget, knob_names, unit)
+    builder = _ReportingBuilder(spec.builder, spec.name, budget, knob_names, unit, objective_unit)
     return dataclasses.replace(spec, builder=builder)

@@ -5,8 +5,10 @@ evaluation number:
 
 * the readings with the noise band (:math:`\pm\sigma_n`: the simulated machine's noise, else the
   prior's, else the ``noise`` argument; no band when none is known), the best reading so far and,
-  for a run on the simulated ring, the noise-free value at every setting and its best so far;
-* the knob trajectories in knob units with their limits (the run's bounds), and for
+  for a run on the simulated ring, the noise-free value at every setting, its best so far and the
+  machine's true optimum within the run's bounds (a converged run reaches that line);
+* the knob trajectories in knob units with their limits (the run's bounds), each knob in its own
+  colour (``tab20``; beyond 20 knobs the line style changes too), and for
   ``pigp-physics`` the fitted centre of the physics form at the end of the run with
   :math:`\pm 2\sigma` (Laplace) per knob;
 * the fitted optimum (``pigp-physics``: the form refitted to all readings, its predicted value
@@ -19,6 +21,10 @@ fraction (median and interquartile range over machines) and the best noise-free 
 
 :func:`write_report` writes the figure as PNG and a self-contained HTML page (the PNG embedded as
 base64, the notices and a summary as text; no external resources).
+
+Every number carries its unit: the objective's (``objective_unit`` of the run file, default
+mA/min) and the knobs' (``knob_unit``, default A); a log written before run files named units
+gets those defaults.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from pathlib import Path
 import torch
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.config.schema import logged_units
 from pigp_torch.runlog import read_log
 
 
@@ -77,11 +84,13 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         fit: refit ``pigp-physics``'s form to show the fitted optimum (one MAP fit).
 
     Returns:
-        a dict: ``path``, ``method``, ``knob_names``, ``unit`` (knob unit, simulated runs; else
-        ``""``), ``bounds`` (``2 x d`` or ``None``), ``maximize``, ``X`` (``n x d``), ``Y``
+        a dict: ``path``, ``method``, ``knob_names``, ``unit`` (knob unit), ``objective_unit``,
+        ``bounds`` (``2 x d`` or ``None``), ``maximize``, ``X`` (``n x d``), ``Y``
         (``n``), ``noise`` (or ``None``), ``true`` (noise-free values, simulated runs only, else
-        ``None``), ``fit`` (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings),
-        ``budget``, ``status``.
+        ``None``), ``optimum`` (simulated, maximized runs: ``(x_star, f_star)``, the machine's
+        true optimum within the run's bounds; else ``None``), ``fit``
+        (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings), ``budget``,
+        ``status``.
 
     Raises:
         FileNotFoundError: no such log.
@@ -96,7 +105,8 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
     bounds = torch.tensor(h["bounds"], dtype=DTYPE) if h.get("bounds") else None
     config = _load_run_config(records)
     maximize = bool(h.get("maximize", True))
-    true, unit = None, ""
+    objective_unit, unit = logged_units(h)
+    true = optimum = None
     sigma = noise
     if config is not None and config.machine.kind == "sim":
         from pigp_torch.run import build_machine
@@ -104,7 +114,8 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         machine = build_machine(config)
         sigma = float(config.machine.noise)
         true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
-        unit = str(getattr(getattr(machine, "sim", None), "knob_units", "") or "A")
+        if maximize and bounds is not None:
+            optimum = _true_optimum(machine, bounds, X[int(true.argmax())])
     elif config is not None and config.prior is not None and sigma is None:
         from pigp_torch.prior import PhysicsPrior
 
@@ -120,6 +131,8 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         "method": h.get("method", "?"),
         "knob_names": names,
         "unit": unit,
+        "objective_unit": objective_unit,
+        "optimum": optimum,
         "bounds": bounds,
         "maximize": maximize,
         "X": X,
@@ -131,6 +144,27 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         "budget": (records.starts[-1].get("budget") if records.starts else None) or len(Y),
         "status": "running (no end record)" if end is None else end["status"],
     }
+
+
+def _true_optimum(machine, bounds: torch.Tensor, x_best: torch.Tensor):
+    """The simulated machine's largest noise-free value within the run's ``bounds``: multi-start
+    L-BFGS-B (8 Sobol starts, zero knobs and the run's best setting)."""
+    from pigp_torch._multistart import find_optimum
+
+    def f(x):
+        return machine.sim.sim.loss_rate(x)  # the _BoundedSim's ring (differentiable)
+
+    starts = torch.stack([torch.zeros_like(x_best), x_best])
+    return find_optimum(f, bounds, n_starts=8, x_init=starts)
+
+
+def _knob_style(i: int, k: int) -> dict:
+    """Colour (and, beyond 20 knobs, line style) of knob ``i`` of ``k``: all distinct."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab20" if k > 10 else "tab10"]
+    styles = ("-", "--", ":", "-.")
+    return {"color": cmap(i % cmap.N), "ls": styles[(i // cmap.N) % len(styles)]}
 
 
 def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
@@ -159,8 +193,9 @@ def _running_best(v: torch.Tensor, maximize: bool) -> torch.Tensor:
     return torch.cummax(v, 0).values if maximize else torch.cummin(v, 0).values
 
 
-def plot_run(data: dict, path: str | Path) -> Path:
-    """Draw :func:`run_report`'s data into a PNG at ``path``; returns the path."""
+def draw_run(data: dict):
+    """The figure of :func:`run_report`'s data: ``(fig, (ax, axk))``, the objective panel and the
+    knob panel (matplotlib, Agg backend; close the figure when done)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -169,11 +204,14 @@ def plot_run(data: dict, path: str | Path) -> Path:
     n = len(data["Y"])
     steps = torch.arange(1, n + 1).numpy()
     Y, X = data["Y"], data["X"]
+    yu = data.get("objective_unit") or ""
+    ku = data.get("unit") or ""
+    ys = f" {yu}" if yu else ""
     fig, (ax, axk) = plt.subplots(2, 1, figsize=(10, 8.5), sharex=True, height_ratios=[3, 2])
     if data["noise"]:
         s = data["noise"]
         ax.fill_between(steps, (Y - s).numpy(), (Y + s).numpy(), color="C0", alpha=0.15,
-                        label=f"noise band ±{s:g}")  # fmt: skip
+                        label=f"noise band ±{s:g}{ys}")  # fmt: skip
     ax.plot(steps, Y.numpy(), ".", color="C0", label="reading")
     ax.plot(steps, _running_best(Y, data["maximize"]).numpy(), color="C0", label="best reading")
     if data["true"] is not None:
@@ -181,21 +219,25 @@ def plot_run(data: dict, path: str | Path) -> Path:
         ax.plot(steps, t.numpy(), "x", ms=3, color="C2", label="true value (noise-free)")
         best_true = _running_best(t, data["maximize"]).numpy()
         ax.plot(steps, best_true, color="C2", label="best true value")
+    if data.get("optimum") is not None:
+        f_star = data["optimum"][1]
+        ax.axhline(f_star, color="k", ls="--", lw=1,
+                   label=f"true optimum {f_star:.4g}{ys} (simulated machine)")  # fmt: skip
     fit = data["fit"]
     if fit is not None:
         lo, hi = fit["value"] - 2 * fit["value_std"], fit["value"] + 2 * fit["value_std"]
-        label = f"fitted optimum {fit['value']:.4g} ± {2 * fit['value_std']:.2g} (2σ)"
+        label = f"fitted optimum {fit['value']:.4g} ± {2 * fit['value_std']:.2g}{ys} (2σ)"
         ax.axhspan(lo, hi, color="C3", alpha=0.12, label=label)
         ax.axhline(fit["value"], color="C3", lw=1)
-    ax.set_ylabel("objective")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.set_ylabel(f"objective ({yu})" if yu else "objective")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.grid(alpha=0.3)
     title = f"{data['path'].name}: {data['method']}, {n} of {data['budget']} evaluations"
     ax.set_title(f"{title} ({data['status']})")
 
     names = data["knob_names"]
     for i, name in enumerate(names):
-        axk.plot(steps, X[:, i].numpy(), lw=1, color=f"C{i % 10}", label=name)
+        axk.plot(steps, X[:, i].numpy(), lw=1, label=name, **_knob_style(i, len(names)))
     if data["bounds"] is not None:
         for v in sorted(set(data["bounds"].flatten().tolist())):
             axk.axhline(v, color="k", ls="--", lw=0.8)
@@ -203,15 +245,26 @@ def plot_run(data: dict, path: str | Path) -> Path:
         xs = n + 1 + 0.25 * torch.arange(len(names)).numpy() / max(1, len(names))
         for i in range(len(names)):
             axk.errorbar(xs[i], float(fit["center"][i]), yerr=2 * float(fit["center_std"][i]),
-                         fmt="o", ms=3, color=f"C{i % 10}", capsize=2)  # fmt: skip
-        axk.annotate("fitted centre ±2σ", (n + 1, axk.get_ylim()[1]), fontsize=8, va="top")
+                         fmt="o", ms=3, capsize=2,
+                         color=_knob_style(i, len(names))["color"])  # fmt: skip
+        axk.annotate(
+            "fitted centre ±2σ", (n + 1.3, axk.get_ylim()[1]), fontsize=8, va="top", ha="right"
+        )
     axk.set_xlabel("evaluation")
-    axk.set_ylabel(f"knob setting ({data['unit']})" if data.get("unit") else "knob setting")
+    axk.set_ylabel(f"knob setting ({ku})" if ku else "knob setting")
     axk.grid(alpha=0.3)
-    axk.legend(ncol=7, fontsize=6, loc="lower left")
+    axk.legend(ncol=1 + len(names) // 16, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     if data["notices"]:
         fig.text(0.01, 0.005, "\n".join(data["notices"][:6]), fontsize=7, va="bottom")
         fig.subplots_adjust(bottom=0.08 + 0.018 * min(6, len(data["notices"])))
+    return fig, (ax, axk)
+
+
+def plot_run(data: dict, path: str | Path) -> Path:
+    """Draw :func:`run_report`'s data (:func:`draw_run`) into a PNG at ``path``; returns it."""
+    import matplotlib.pyplot as plt
+
+    fig, _ = draw_run(data)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
@@ -253,13 +306,15 @@ def plot_compare(data: dict, path: str | Path) -> Path:
     for k, (method, g) in enumerate(df.groupby("method", sort=False)):
         q = g.groupby("step")[col].quantile([0.25, 0.5, 0.75]).unstack()
         x = q.index.to_numpy() + 1
-        ax.plot(x, q[0.5], color=f"C{k}", label=f"{method} ({g['machine_seed'].nunique()} rings)")
+        ax.plot(x, q[0.5], color=f"C{k}",
+                label=f"{method} ({g['machine_seed'].nunique()} machines)")  # fmt: skip
         ax.fill_between(x, q[0.25], q[0.75], color=f"C{k}", alpha=0.2)
         for _, run in g.groupby("machine_seed"):
             value = run["best_f_true"] if "best_f_true" in run else run["y"].cummax()
             ax2.plot(run["step"] + 1, value, color=f"C{k}", lw=0.8, alpha=0.7)
-    ax.set_ylabel("gain fraction (median, IQR)" if has_gain else "reading (median, IQR)")
-    ax2.set_ylabel("best noise-free value so far (each run)")
+    ax.set_ylabel("gain fraction (median, IQR; 1 = optimum)" if has_gain
+                  else "reading (mA/min; median, IQR)")  # fmt: skip
+    ax2.set_ylabel("best noise-free loss rate so far (mA/min; each run)")
     for a in (ax, ax2):
         a.set_xlabel("evaluation")
         a.grid(alpha=0.3)
@@ -320,14 +375,27 @@ def write_report(
 
 
 def _summary(data: dict) -> list[str]:
+    """The page's text lines: best reading (and true value), true and fitted optimum, with units."""
     Y = data["Y"]
+    yu = data.get("objective_unit") or ""
+    ys = f" {yu}" if yu else ""
     i = int(Y.argmax() if data["maximize"] else Y.argmin())
-    lines = [f"best reading {float(Y[i]):.6g} at evaluation {i + 1} of {len(Y)}"]
+    lines = [f"best reading {float(Y[i]):.6g}{ys} at evaluation {i + 1} of {len(Y)}"]
+    if data["noise"]:
+        lines.append(f"reading noise σ = {data['noise']:g}{ys}")
     if data["true"] is not None:
         t = data["true"]
         j = int(t.argmax() if data["maximize"] else t.argmin())
-        lines.append(f"best true value {float(t[j]):.6g} at evaluation {j + 1}")
+        lines.append(f"best true value {float(t[j]):.6g}{ys} at evaluation {j + 1}")
+        if data.get("optimum") is not None:
+            f_star = data["optimum"][1]
+            lines.append(
+                f"true optimum of the simulated machine {f_star:.6g}{ys} (best true value "
+                f"{100 * float(t[j]) / f_star:.1f} % of it)"
+            )
     fit = data["fit"]
     if fit is not None and math.isfinite(fit["value"]):
-        lines.append(f"fitted optimum {fit['value']:.6g} ± {2 * fit['value_std']:.3g} (2σ)")
+        lines.append(f"fitted optimum {fit['value']:.6g} ± {2 * fit['value_std']:.3g}{ys} (2σ)")
+    if data.get("unit"):
+        lines.append(f"knob settings in {data['unit']}; the objective in {yu or 'its own unit'}")
     return lines

@@ -97,8 +97,28 @@ def test_demo_refuses_same_seed(capsys):
 
 def test_demo_refuses_a_machine_among_the_ensemble_rings(capsys):
     """The rings that give the centre prior must not include the machine under test."""
-    assert main(["demo", "--machine-seed", "1002", "--center-ensemble", "3"]) == 2
+    assert main(["demo", "--machine-seed", "1002", "--center-ensemble", "20"]) == 2
     assert "choose model and machine seeds outside them" in capsys.readouterr().err
+
+
+def test_a_too_small_center_ensemble_is_refused_before_any_ring(capsys, monkeypatch):
+    """Fewer ensemble rings than knobs + 1 is refused at once (no ring is built), and --help says
+    the minimum."""
+    import pigp_torch.simulation.ensemble as ens
+
+    def no_rings(*a, **k):
+        raise AssertionError("a ring was computed")
+
+    monkeypatch.setattr(ens, "ensemble_optima", no_rings)
+    for argv in (["demo", "--center-ensemble", "13"],
+                 ["compare", "--center-ensemble", "5", "--seeds", "1"]):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "too small for 13 knobs" in err and "at least 14" in err
+    for cmd in ("demo", "compare", "build-prior"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        assert "at least 14" in " ".join(capsys.readouterr().out.split())
 
 
 @pytest.mark.slow
@@ -172,3 +192,59 @@ def test_the_ensemble_cache_stores_what_it_was_given(tmp_path):
     assert b.provenance["center_ensemble_seeds"] == [1001, 1020, 20]
     with_cached_ensemble(prior, 21, 0, cache, compute)  # another size: computed again
     assert calls == [1, 1]
+
+
+def test_help_names_every_default():
+    """Every option of every command that has a default names it in --help, once: a help text
+    that already gives its default in words gets no second '(default: ...)'."""
+    import argparse
+
+    from pigp_torch.cli import build_parser
+
+    def parsers(p, path):
+        yield path, p
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, child in a.choices.items():
+                    yield from parsers(child, [*path, name])
+
+    checked = 0
+    for path, p in parsers(build_parser(), ["pigp"]):
+        formatter = p._get_formatter()
+        for a in p._actions:
+            if not a.option_strings or a.help is argparse.SUPPRESS:
+                continue
+            if any(a.default is v for v in (None, False, argparse.SUPPRESS)):
+                continue
+            text = formatter._expand_help(a)
+            assert "default" in text.lower(), (path, a.option_strings)
+            assert text.lower().count("default") == 1 or "(default:" not in text, text
+            checked += 1
+    assert checked > 60
+    text = " ".join(build_parser()._subparsers._group_actions[0].choices["train-surrogate"]
+                    .format_help().split())  # fmt: skip
+    assert "--batch-size BATCH_SIZE (default: 1024)" in text
+    assert "networks averaged (default 3) " in text and "(default: 3)" not in text
+
+
+def test_summary_table_fits_100_columns():
+    """The printed summary: one row per method, every line within 100 characters, units named."""
+    import math
+
+    import pandas as pd
+
+    from pigp_torch.commands.compare import format_summary
+
+    cols = {"n_runs": 24, "n_reached_95": 20, "budget": 100, "steps_to_95_median": 31.5,
+            "steps_to_95_q25": 22.0, "steps_to_95_q75": 48.25, "gain_20_median": 0.81234,
+            "gain_40_median": 0.95, "gain_100_median": math.nan, "best_f_true_median": 1.69871,
+            "ask_time_s_median": 0.2134}  # fmt: skip
+    table = pd.DataFrame([cols, cols], index=pd.Index(["pigp-physics-box-long-name", "ml2"],
+                                                       name="method"))  # fmt: skip
+    lines = format_summary(table).splitlines()
+    assert max(len(ln) for ln in lines) <= 100
+    assert "mA/min" in lines[1] and lines[2].startswith("pigp-physics-box ")
+    row = lines[3].split()
+    assert row == ["ml2", "24", "20/24", "32", "[22-48]", "0.812", "0.950", "-", "1.6987", "0.213"]
+    table.loc["ml2", "steps_to_95_median"] = 101.0  # the median run did not reach 95 %
+    assert format_summary(table).splitlines()[3].split()[3] == ">100"

@@ -10,7 +10,7 @@ from pigp_torch.simulation.deck import deck_path
 KNOBS = "01G-QSS4,02G-QSS3,05G-QSS3"
 
 
-def test_design_deck_file_through_the_cli(tmp_path):
+def test_design_deck_file_through_the_cli(tmp_path, capsys):
     """The SPEAR3 design deck given as a user's file: generate-data -> train-surrogate ->
     build-prior (with an error ensemble of that ring) -> compare, with knobs by element name."""
     lattice = tmp_path / "my_ring.json"
@@ -20,7 +20,11 @@ def test_design_deck_file_through_the_cli(tmp_path):
     assert main(["generate-data", *ring, "--seed", "0", "--n", "3000", "-o", str(data)]) == 0
     assert main(["train-surrogate", str(data), "-o", str(model), "--members", "1",
                  "--epochs", "30", "--target", "log_excess"]) == 0  # fmt: skip
+    capsys.readouterr()
     assert main(["build-prior", str(model), "-o", str(prior), "--center-ensemble", "4"]) == 0
+    assert f"saved prior to {prior.resolve()}" in capsys.readouterr().out  # not "to None"
+    assert main(["build-prior", str(model), "-o", str(prior), "--center-ensemble", "3"]) == 2
+    assert "too small for 3 knobs" in capsys.readouterr().err
     p = PhysicsPrior.load(prior)
     assert p.knob_names == KNOBS.split(",")
     assert p.center_cov is not None and p.center_cov.shape == (3, 3)

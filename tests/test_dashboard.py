@@ -37,8 +37,34 @@ def test_state_of_a_run_log(tmp_path):
         s = run_state(log.path)
         assert (s["n"], s["budget"], s["status"]) == (3, 10, "running")
         assert s["best"] == [0.5, 0.5, 0.7] and s["move"] == 1.0 and s["move_knob"] == "02G-QSS3"
+        assert s["objective_unit"] == "mA/min" and s["knob_unit"] == "A"  # the defaults
+        assert s["x"] == [[0.0, 0.0], [0.5, -1.0], [1.0, -2.0]] and not s["ended"]
+        log.write("notice", step=2, message="a notice")
+        log.log_end("completed", reason="budget reached", restored_to="initial")
+    s = run_state(tmp_path / "run.jsonl")
+    assert s["status"] == "completed" and s["ended"]
+    assert s["notices"] == [
+        "evaluation 3: a notice",
+        "ended completed: budget reached; knobs restored to initial",
+    ]
+
+
+def test_final_page_embeds_the_state_and_needs_no_server(tmp_path):
+    """The final page: the state as JSON in the page (a '</script>' in a knob name cannot end the
+    script), no polling, written next to the log."""
+    from pigp_torch.dashboard import final_page_path, page_html, write_final_page
+
+    with make_log(tmp_path / "run.jsonl", 3) as log:
         log.log_end("completed")
-    assert run_state(tmp_path / "run.jsonl")["status"] == "completed"
+    path = write_final_page(tmp_path / "run.jsonl")
+    assert path == final_page_path(tmp_path / "run.jsonl") == tmp_path / "run_dashboard.html"
+    text = path.read_text()
+    embedded = text.split("const INITIAL = ")[1].split(";\n")[0]
+    state = json.loads(embedded)
+    assert state["n"] == 3 and state["final_page"] == str(path) and state["ended"]
+    evil = page_html(state={"knob_names": ["</script><b>x"]})
+    assert "</script><b>" not in evil and "<\\/script><b>x" in evil
+    assert "const INITIAL = null;" in page_html(250) and "const POLL_MS = 250;" in page_html(250)
 
 
 def test_server_answers_on_loopback_and_stops(tmp_path):
@@ -97,6 +123,56 @@ def test_the_page_in_headless_chromium_shows_and_follows_the_run(tmp_path):
         log.close()
 
 
+@pytest.mark.skipif(BROWSER is None, reason="no Chromium (apt-get install chromium)")
+def test_the_page_has_axes_units_knobs_and_keeps_the_final_state(tmp_path):
+    """While the page polls, the run ends: the page shows numbered axes with units, the knob
+    panel and the notices, stops polling and names the final page; finish() returns as soon as
+    the page has the final state (well before its 20 s bound), and the written final page shows
+    the same without a server."""
+    import threading
+    import time
+
+    log = make_log(tmp_path / "run.jsonl", 4)
+    finished = {}
+
+    def end_the_run(state):  # the second poll: the run ends, the command finishes the dashboard
+        if dash.requests == 2 and not finished:
+            log.write("notice", step=3, message="physics prior rejected")
+            log.log_end("completed", restored_to="initial")
+            log.close()
+            t0 = time.monotonic()
+            finished["thread"] = threading.Thread(
+                target=lambda: finished.update(path=dash.finish(linger_s=20),
+                                               dt=time.monotonic() - t0))  # fmt: skip
+            finished["thread"].start()
+
+    dash = Dashboard(log.path, poll_ms=200, lifetime_s=120, on_state=end_the_run)
+    browser = [BROWSER, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+               f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=4000"]  # fmt: skip
+    try:
+        dom = subprocess.run(
+            [*browser, "--dump-dom", dash.url], capture_output=True, text=True, timeout=90
+        ).stdout
+    finally:
+        finished["thread"].join(timeout=30)
+        dash.close()
+    final = tmp_path / "run_dashboard.html"
+    assert finished["path"] == final and finished["dt"] < 15
+    browser[5] = f"--user-data-dir={tmp_path / 'profile2'}"  # a fresh profile for a file URL
+    static = subprocess.run(
+        [*browser, "--dump-dom", final.as_uri()], capture_output=True, text=True, timeout=90
+    ).stdout
+    for where, text in (("live page", dom), ("final file", static)):
+        assert "The run has ended (completed)" in text, where
+        assert str(final) in text, where
+        assert "objective (mA/min)" in text and "knob setting (A)" in text
+        assert text.count('class="ytick"') >= 3 and text.count('class="xtick"') >= 3
+        assert "last setting (A)" in text and "01G-QSS4" in text and "02G-QSS3" in text
+        assert ">0.700000 mA/min<" in text  # the best reading (0.5, 0.4, 0.7, 0.2), with its unit
+        assert "evaluation 4: physics prior rejected" in text
+        assert "knobs restored to initial" in text
+
+
 def test_pigp_optimize_dashboard_prints_its_url_and_stops(tmp_path, capsys):
     import yaml
 
@@ -117,3 +193,8 @@ def test_pigp_optimize_dashboard_prints_its_url_and_stops(tmp_path, capsys):
     assert "evaluation    3/3" in out
     with pytest.raises(OSError):  # stopped with the run
         urllib.request.urlopen(url, timeout=2)
+    final = tmp_path / "run_dashboard.html"
+    assert f"dashboard: final page {final}" in out
+    assert "step 3 of 3" not in final.read_text()  # drawn by the page's script, from the state
+    state = json.loads(final.read_text().split("const INITIAL = ")[1].split(";\n")[0])
+    assert state["n"] == 3 and state["status"] == "completed" and state["knob_unit"] == "A"

@@ -15,12 +15,16 @@ from pigp_torch.progress import ProgressLine, reporting_spec
 def test_line_has_step_reading_best_move_and_time():
     t = iter([0.0, 1.5, 2.0])
     out = io.StringIO()
-    line = ProgressLine(3, ["a", "b"], unit="A", out=out, clock=lambda: next(t))
+    line = ProgressLine(
+        3, ["a", "b"], unit="A", objective_unit="mA/min", out=out, clock=lambda: next(t)
+    )
     line({"step": 0, "a": 0.0, "b": 0.0, "y": 1.0})
     line({"step": 1, "a": 0.5, "b": -2.0, "y": 0.5})
     first, second = out.getvalue().splitlines()
-    assert first == "evaluation    1/3  y = 1  best = 1  move -  1.50 s/step"
-    assert second == "evaluation    2/3  y = 0.5  best = 1  move 2 A (b)  0.50 s/step"
+    assert first == "evaluation    1/3  y = 1 mA/min  best = 1 mA/min  move -  1.50 s/step"
+    assert second == (
+        "evaluation    2/3  y = 0.5 mA/min  best = 1 mA/min  move 2 A (b)  0.50 s/step"
+    )
 
 
 def test_minimizing_and_resumed_best():
@@ -34,12 +38,13 @@ def test_reporting_spec_prints_every_tell_and_keeps_the_numbers(capsys):
     """Nelder-Mead on the simulated ring: the same table with and without the progress lines."""
     plain = run_one(METHODS["nelder-mead"], 1, _dummy_prior(), budget=6, optimum_starts=0)
     sim_names = [c for c in plain.columns if "QSS" in c]
-    spec = reporting_spec(METHODS["nelder-mead"], 6, sim_names, unit="A")
+    spec = reporting_spec(METHODS["nelder-mead"], 6, sim_names, unit="A", objective_unit="mA/min")
     capsys.readouterr()
     wrapped = run_one(spec, 1, _dummy_prior(), budget=6, optimum_starts=0)
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "evaluation" in ln]
     assert len(lines) == 6 and lines[-1].split()[0] == "nelder-mead"
     assert "evaluation    6/6" in lines[-1] and " A (" in lines[-1]
+    assert lines[-1].count(" mA/min") == 2
     cols = [*sim_names, "y"]
     assert torch.equal(torch.tensor(plain[cols].to_numpy()), torch.tensor(wrapped[cols].to_numpy()))
 
@@ -60,3 +65,19 @@ def _dummy_prior() -> PhysicsPrior:
         knob_names=list(ring.knob_names),
         bounds=ring.bounds,
     )
+
+
+def test_a_rejected_prior_reads_as_the_method_working():
+    """The prior check's notice says it is the method working as designed; others pass as is."""
+    from pigp_torch.progress import notice_text
+
+    out = io.StringIO()
+    line = ProgressLine(3, ["a"], unit="A", objective_unit="mA/min", out=out, clock=lambda: 0.0)
+    message = "physics prior rejected after 15 readings: misfit z = 4.1 > 3; stage 2 of 3"
+    line({"step": 0, "a": 0.0, "y": 1.0, "notices": [message, "other"]})
+    notes = [t for t in out.getvalue().splitlines() if "NOTICE" in t]
+    assert notes[0] == (
+        "NOTICE  prior check (the method working as designed): the readings disagree with the "
+        "physics prior after 15 readings: misfit z = 4.1 > 3; stage 2 of 3"
+    )
+    assert notes[1] == "NOTICE  other" and notice_text("other") == "other"

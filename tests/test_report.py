@@ -108,3 +108,67 @@ def test_report_of_a_compare_folder(tmp_path):
 def test_report_refuses_what_it_cannot_draw(tmp_path, capsys):
     assert cli.main(["report", str(tmp_path)]) == 2  # a folder without runs.csv
     assert "no runs.csv" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # ~10 s: two 13-D optimum searches
+def test_units_true_optimum_and_knob_colours_of_a_13_knob_run(tmp_path):
+    """A 13-knob simulated run: the axes say mA/min and A, the page's text carries the units and
+    the true optimum (the simulated machine's largest loss rate within the bounds, at least every
+    noise-free value seen), the legend names the noise band in mA/min, and the 13 knob traces
+    have 13 different colours."""
+    import matplotlib.pyplot as plt
+
+    from pigp_torch.report import draw_run
+    from pigp_torch.simulation import Spear3Coupling
+
+    knobs = Spear3Coupling(1).knob_names
+    data = {
+        "machine": {"kind": "sim", "error_seed": 1, "noise": 0.04, "seed": 2},
+        "knobs": {k: [-30, 30] for k in knobs},
+        "method": {"name": "nelder-mead"},
+        "budget": 15,
+        "max_step": 0.2,
+        "log": "run.jsonl",
+    }
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(data))
+    assert cli.main(["optimize", "--config", str(tmp_path / "run.yaml"), "--quiet"]) == 0
+    report = run_report(tmp_path / "run.jsonl")
+    f_star = report["optimum"][1]
+    assert f_star == pytest.approx(1.7, abs=1e-2)  # seed 1 in ±30 A: the map's anchor
+    assert f_star >= float(report["true"].max())
+    fig, (ax, axk) = draw_run(report)
+    try:
+        assert ax.get_ylabel() == "objective (mA/min)"
+        assert axk.get_ylabel() == "knob setting (A)" and axk.get_xlabel() == "evaluation"
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert "noise band ±0.04 mA/min" in labels
+        assert any(t.startswith("true optimum 1.7") and "mA/min" in t for t in labels)
+        assert any(abs(line.get_ydata()[0] - f_star) < 1e-12 for line in ax.get_lines())
+        colours = {tuple(line.get_color()) for line in axk.get_lines()[:13]}
+        assert len(colours) == 13
+    finally:
+        plt.close(fig)
+    _, page = write_report(tmp_path / "run.jsonl")
+    text = page.read_text()
+    assert re.search(r"best reading [0-9.]+ mA/min at evaluation", text)
+    assert f"true optimum of the simulated machine {f_star:.6g} mA/min" in text
+    assert "reading noise σ = 0.04 mA/min" in text and "knob settings in A" in text
+
+
+def test_an_epics_style_log_gets_its_run_file_units(tmp_path):
+    """A run file's own units reach both axes (no simulated machine needed for the labels)."""
+    import matplotlib.pyplot as plt
+
+    from pigp_torch.report import draw_run
+
+    path = write_run(tmp_path, method="nelder-mead", budget=3, objective_unit="counts/s",
+                     knob_unit="mrad")  # fmt: skip
+    assert cli.main(["optimize", "--config", path, "--quiet"]) == 0
+    report = run_report(tmp_path / "run.jsonl", fit=False)
+    fig, (ax, axk) = draw_run(report)
+    try:
+        assert (
+            ax.get_ylabel() == "objective (counts/s)" and axk.get_ylabel() == "knob setting (mrad)"
+        )
+    finally:
+        plt.close(fig)

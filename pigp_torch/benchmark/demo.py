@@ -11,15 +11,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+import torch
 
 from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
-from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.benchmark.protocol import machine_loss_map, run_one
 from pigp_torch.methods import METHODS
 from pigp_torch.prior import prior_from_model
 from pigp_torch.progress import reporting_spec
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.ensemble import ENSEMBLE_SEED0, with_center_ensemble
+from pigp_torch.simulation.ensemble import (
+    ENSEMBLE_SEED0,
+    check_ensemble_size,
+    with_center_ensemble,
+)
 from pigp_torch.simulation.sampling import generate_dataset
+from pigp_torch.simulation.spear3 import knob_names_for
 from pigp_torch.surrogate import train_ensemble
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
@@ -64,14 +70,26 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     r"""Run the demo pipeline, printing its stages; returns the scored runs of every method (one
     table, :func:`~pigp_torch.benchmark.run_one`'s columns) and the physics prior used.
 
+    It runs on one torch thread (restored afterwards), as the benchmark's runs do: a GP step is
+    many small linear-algebra calls, and two OpenMP threads on a busy two-core machine spend
+    their time waiting at barriers.
+
     Raises:
         ValueError: model and machine share a seed, either is among the ensemble seeds, a
             negative ensemble size, or an unknown method.
     """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _run_demo(a)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     if a.model_seed == a.machine_seed:
         raise ValueError("the model ring and the machine must have different error seeds")
-    if a.center_ensemble < 0:
-        raise ValueError(f"--center-ensemble must be >= 0, got {a.center_ensemble}")
+    check_ensemble_size(a.center_ensemble, len(knob_names_for("paper13")))  # the demo's knobs
     if a.center_ensemble and {a.model_seed, a.machine_seed} & set(
         range(ENSEMBLE_SEED0, ENSEMBLE_SEED0 + a.center_ensemble)
     ):
@@ -124,12 +142,17 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         if source is not None:
             print(f"      optima of {a.center_ensemble} ensemble rings from the cache "
                   f"({source})", flush=True)  # fmt: skip
-    print(f"[4/4] {', '.join(a.methods)} on machine error seed {a.machine_seed}, "
-          f"{a.budget} evaluations each", flush=True)  # fmt: skip
+    f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
+    print(f"[4/4] {', '.join(a.methods)} on the benchmark's machine {a.machine_seed}, "
+          f"{a.budget} evaluations each: coupling-error seed {a.machine_seed} with its own "
+          f"loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
+          f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it with "
+          f"machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}",
+          flush=True)  # fmt: skip
     names, unit = model_ring.knob_names, model_ring.knob_units
     runs = [
-        run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit), a.machine_seed,
-                prior, budget=a.budget)
+        run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min"),
+                a.machine_seed, prior, budget=a.budget)
         for m in a.methods
     ]  # fmt: skip
     return pd.concat(runs, ignore_index=True), prior

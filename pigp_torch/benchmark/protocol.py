@@ -33,7 +33,6 @@ import functools
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 
-import numpy as np
 import pandas as pd
 import torch
 
@@ -43,6 +42,7 @@ from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.prior import PhysicsPrior, prior_from_model
+from pigp_torch.simulation.calibration import MAP_SPREAD, machine_loss_map  # noqa: F401
 from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
 from pigp_torch.simulation.ring import RingCoupling
 from pigp_torch.simulation.spec import RingSpec, as_ring_spec
@@ -55,26 +55,7 @@ ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
 
-#: Spread of a machine's loss-rate map around the model's: background factor 1 + d, d uniform
-#: on ``background``; Touschek-scale factor 1 + e, e uniform on ``touschek``.
-MAP_SPREAD = {"background": (-0.8, 0.3), "touschek": (-0.3, 0.3)}
-
 _OPTIMA: dict[tuple, float] = {}
-
-
-def machine_loss_map(machine_seed: int, model_map, spread=None) -> tuple[float, float]:
-    r"""The loss-rate map :math:`(f_\infty (1 + d), g (1 + \epsilon))` of machine
-    ``machine_seed`` from the model's map ``(f_inf, g)`` (mA/min, mA/min m²).
-
-    :math:`d` and :math:`\epsilon` are uniform on the ranges of ``spread`` (default
-    :data:`MAP_SPREAD`), drawn from a generator seeded by the machine seed alone (the same map
-    for every method and every process).
-    """
-    spread = MAP_SPREAD if spread is None else spread
-    rng = np.random.default_rng([int(machine_seed), 0x4C4F5353])  # a stream of its own
-    d = rng.uniform(*spread["background"])
-    e = rng.uniform(*spread["touschek"])
-    return float(model_map[0]) * (1.0 + d), float(model_map[1]) * (1.0 + e)
 
 
 def _maps_key(machine_maps) -> bool | tuple[float, float]:

@@ -9,10 +9,11 @@ def cmd_build_prior(args) -> int:
     import torch
 
     from pigp_torch.prior import prior_from_model
-    from pigp_torch.simulation.ensemble import with_center_ensemble
+    from pigp_torch.simulation.ensemble import check_ensemble_size, with_center_ensemble
     from pigp_torch.surrogate import load_surrogate
 
     model, meta = load_surrogate(args.model)
+    check_ensemble_size(args.center_ensemble, model.dim)  # before the optimum search
     bounds = model.bounds
     if args.knob_limit is not None:
         lim = torch.full((model.dim,), args.knob_limit, dtype=torch.float64)
@@ -33,17 +34,16 @@ def cmd_build_prior(args) -> int:
         knob_names=meta.get("knob_names") or None,
         provenance=provenance,
     )
-    if args.center_ensemble < 0:
-        raise ValueError(f"--center-ensemble must be >= 0, got {args.center_ensemble}")
     if args.center_ensemble:
         prior = with_center_ensemble(prior, args.center_ensemble, data_meta, progress=True)
-    path = prior.save(args.output)
+    prior.save(args.output)
+    path = Path(args.output)
     lengths, _ = prior.length_scales(normalized=True)
     print(f"optimum of the surrogate: {prior.f_x0:.4f} mA/min (f_inf {prior.f_inf:.4f})")
     print(f"precision condition number: {prior.condition_number:.0f}")
     print("correlation lengths (normalized knobs, stiffest first): "
           + " ".join(f"{v:.3g}" for v in lengths.tolist()))  # fmt: skip
-    print(f"saved prior to {path}")
+    print(f"saved prior to {path.resolve()}")
     return 0
 
 
@@ -75,6 +75,7 @@ def register(sub, bench) -> None:
         help="also store the covariance of the optimum and the mean shape of the peak over N "
         "simulated rings with other error seeds (1001...; same knobs and optics as the "
         "surrogate's data; ~3-7 s a ring); pigp-physics uses them as its prior on the machine's "
-        "optimum and as the shape of its physics form (default 0: none)",
+        "optimum and as the shape of its physics form; N must exceed the number of knobs "
+        "(at least 14 for the 13 SPEAR3 knobs; default 0: none)",
     )
     p.set_defaults(func=cmd_build_prior)

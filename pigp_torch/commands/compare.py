@@ -19,6 +19,54 @@ def seed_list(text: str) -> list[int]:
     return seeds
 
 
+def format_summary(summary, fraction: int = 95) -> str:
+    """The summary table as printed: one row per method in at most 100 columns (medians, and the
+    interquartile range of the steps; every column of ``summary.csv`` is in the file).
+
+    Args:
+        summary: :func:`~pigp_torch.benchmark.summarize`'s table (indexed by method).
+        fraction: the gain fraction of its ``steps_to_<fraction>`` column.
+    """
+    import math
+    import textwrap
+
+    def num(v, spec):
+        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+    def col(row, name):
+        return row[name] if name in row.index else float("nan")
+
+    head = (
+        f"{'method':<17}{'runs':>5}{'reached':>9}{f'steps to {fraction} %':>18}"
+        f"{'gain@20':>9}{'gain@40':>9}{'gain@100':>9}{'best':>10}{'ask':>8}"
+    )
+    unit = f"{'':<17}{'':>5}{f'{fraction} %':>9}{'median [IQR]':>18}{'':>27}{'mA/min':>10}{'s':>8}"
+    lines = [head, unit]
+    for method, row in summary.iterrows():
+        steps = col(row, f"steps_to_{fraction}_median")
+        iqr = (col(row, f"steps_to_{fraction}_q25"), col(row, f"steps_to_{fraction}_q75"))
+        budget = col(row, "budget")
+        spread = "" if math.isnan(steps) else f" [{num(iqr[0], '.0f')}-{num(iqr[1], '.0f')}]"
+        if not math.isnan(budget) and not steps <= budget:  # not reached within the budget
+            steps, spread = f">{budget:.0f}", ""
+        reached = f"{int(col(row, f'n_reached_{fraction}'))}/{int(col(row, 'n_runs'))}"
+        lines.append(
+            f"{str(method)[:16]:<17}{int(col(row, 'n_runs')):>5}{reached:>9}"
+            f"{(steps if isinstance(steps, str) else num(steps, '.0f')) + spread:>18}"
+            f"{num(col(row, 'gain_20_median'), '.3f'):>9}"
+            f"{num(col(row, 'gain_40_median'), '.3f'):>9}"
+            f"{num(col(row, 'gain_100_median'), '.3f'):>9}"
+            f"{num(col(row, 'best_f_true_median'), '.4f'):>10}"
+            f"{num(col(row, 'ask_time_s_median'), '.3g'):>8}"
+        )
+    note = (
+        "gain@k: fraction of the way from the start to the machine's true optimum after k "
+        "evaluations (median; 1 = optimum); best: best noise-free loss rate; ask: median seconds "
+        "per proposal. Every column with its quartiles: summary.csv"
+    )
+    return "\n".join([*lines, *textwrap.wrap(note, 100)])
+
+
 def write_comparison(df, out: Path, title: str) -> None:
     from pigp_torch.benchmark import plot_prior_mean, plot_runs, summarize
 
@@ -31,16 +79,18 @@ def write_comparison(df, out: Path, title: str) -> None:
     if {"pigp", "pigp-zero-mean"} <= set(df["method"]):
         plot_prior_mean(df, out / "fig2c_prior_mean.png")
         files.append("fig2c_prior_mean.png")
-    with_pd_options = summary.to_string(float_format=lambda v: f"{v:.3g}")
-    print(with_pd_options)
+    print(format_summary(summary))
     print(f"wrote {', '.join(files)} to {out}")
 
 
 def cmd_compare(args) -> int:
     from pigp_torch.benchmark import run_benchmark
     from pigp_torch.ringargs import ring_spec_from_args
+    from pigp_torch.simulation.ensemble import check_ensemble_size
+    from pigp_torch.simulation.spec import knob_count
 
     ring = ring_spec_from_args(args)
+    check_ensemble_size(args.center_ensemble, knob_count(ring))  # before any ring is computed
     df = run_benchmark(
         args.methods,
         seed_list(args.seeds),
@@ -126,7 +176,8 @@ def register(sub, bench) -> None:
         metavar="N",
         help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
         "where the machine's optimum lies and the mean shape of the peak (~3-7 s a ring; 0: "
-        "box prior and the model ring's shape; default 40)",
+        "box prior and the model ring's shape; otherwise more than the knobs, at least 14 for "
+        "the 13 SPEAR3 knobs; default 40)",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/compare"), help="output folder")
     p.set_defaults(func=cmd_compare)

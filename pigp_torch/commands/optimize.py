@@ -141,8 +141,10 @@ def register(sub, bench) -> None:
     p.add_argument(
         "--dashboard",
         action="store_true",
-        help="serve a live page of the run on 127.0.0.1 (step, readings, best so far, knob "
-        "moves; read from the run log) while it runs; the URL is printed",
+        help="serve a live page of the run on 127.0.0.1 (step, readings and best so far, knob "
+        "settings, notices; read from the run log) while it runs; the URL is printed. At the "
+        "end the final state is written to <log stem>_dashboard.html (path printed) and the "
+        "server stops once an open page has it (at most 5 s)",
     )
     p.add_argument(
         "--dashboard-port",
@@ -345,20 +347,24 @@ def _run(args, setup, records, log_lock) -> int:
         out.flush()
     from pigp_torch.progress import ProgressLine
 
-    sim = getattr(setup.machine, "sim", None)  # the simulated ring knows its knob unit
-    unit = str(getattr(sim, "knob_units", "") or "")
     report = ProgressLine(
-        config.budget, config.knob_names, maximize=config.objective.maximize, unit=unit, out=out
+        config.budget,
+        config.knob_names,
+        maximize=config.objective.maximize,
+        unit=config.knob_unit,
+        objective_unit=config.objective_unit,
+        out=out,
     )
     if records is not None and records.evaluations:
         say(out, f"replaying {records.n_evaluations} logged evaluations (one ask each) ...")
         report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
     dashboard = None
     if getattr(args, "dashboard", False):
-        from pigp_torch.dashboard import Dashboard
+        from pigp_torch.dashboard import Dashboard, final_page_path
 
         dashboard = Dashboard(log.path, port=args.dashboard_port)
-        say(out, f"dashboard: {dashboard.url} (while the run goes)")
+        say(out, f"dashboard: {dashboard.url} (while the run goes; the final page is then "
+                  f"written to {final_page_path(log.path)})")  # fmt: skip
     code = EXIT_STOPPED
     try:
         setup.run(log=log, resume=records, callback=None if args.quiet else report)
@@ -376,10 +382,13 @@ def _run(args, setup, records, log_lock) -> int:
         say(sys.stderr, f"pigp optimize: run failed: {type(err).__name__}: {err}")
     finally:
         log.close()  # never raises: every record was fsynced when written
-        if dashboard is not None:
-            dashboard.close()
         with contextlib.suppress(Exception):  # the summary never hides the exit status
             print_summary(log.path, out, log=log)
+        if dashboard is not None:
+            try:
+                say(out, f"dashboard: final page {dashboard.finish()}")
+            except (OSError, ValueError) as err:
+                say(sys.stderr, f"pigp optimize: dashboard final page not written: {err}")
         with contextlib.suppress(OSError, ValueError):
             out.flush()
     end = log.end_record  # this session's, written or not (never an earlier session's)

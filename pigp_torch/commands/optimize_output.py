@@ -7,17 +7,27 @@ import contextlib
 import math
 from pathlib import Path
 
+from pigp_torch.config.schema import logged_units as log_units
 
-def fmt_knobs(names, values) -> str:
-    return ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
+
+def fmt_knobs(names, values, unit: str = "") -> str:
+    """``name=value, name=value (unit)``: the unit once, at the end."""
+    text = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
+    return f"{text} ({unit})" if unit else text
 
 
 def print_plan(setup, records, out) -> None:
     c = setup.config
     names, bounds = c.knob_names, c.bounds()
     m = c.machine
+    yu, ku = c.objective_unit, c.knob_unit
     if m.kind == "sim":
-        machine = f"simulated ring (error seed {m.error_seed}, noise {m.noise:g}, seed {m.seed})"
+        ring = f"SPEAR3 {m.optics}" if m.lattice is None else f"lattice {m.lattice}"
+        maps = {"model": "the ring's loss-rate map", "benchmark": "the benchmark's loss-rate map"}
+        machine = (
+            f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
+            f"{m.noise:g} {yu}, noise seed {m.seed})"
+        )
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"
     from pigp_torch.loop import effective_max_step
@@ -29,18 +39,19 @@ def print_plan(setup, records, out) -> None:
     print(f"plan: {c.method.name} on the {machine}", file=out)
     print(
         f"  budget {c.budget} evaluations, {'maximize' if c.objective.maximize else 'minimize'}"
-        f" the objective, options {c.method.options or '{}'}, seed {c.method.seed}",
+        f" the objective ({yu}), options {c.method.options or '{}'}, seed {c.method.seed}",
         file=out,
     )
-    print(f"  {'knob':<14}{'lower':>12}{'upper':>12}{'now':>12}{'max step':>12}", file=out)
+    head = "".join(f"{h + ' (' + ku + ')':>14}" for h in ("lower", "upper", "now", "max step"))
+    print(f"  {'knob':<14}{head}", file=out)
     for i, n in enumerate(names):
         step = "none" if limit is None else f"{float(limit[i]):.4g}"
         print(
-            f"  {n:<14}{float(bounds[0, i]):>12.4g}{float(bounds[1, i]):>12.4g}"
-            f"{now[i]:>12.4g}{step:>12}",
+            f"  {n:<14}{float(bounds[0, i]):>14.4g}{float(bounds[1, i]):>14.4g}"
+            f"{now[i]:>14.4g}{step:>14}",
             file=out,
         )
-    floor = "none" if c.objective_floor is None else f"{c.objective_floor:g}"
+    floor = "none" if c.objective_floor is None else f"{c.objective_floor:g} {yu}"
     print(
         f"  at the end: restore {c.restore}; read retries {c.read_retries}; objective floor "
         f"{floor}",
@@ -94,7 +105,9 @@ def print_summary(path: Path, out, log=None) -> dict | None:
             failed = f"; a write failed: {log.write_error}" if log.write_error else ""
             say(out, f"run log: {path} (the session has no end record{failed})")
         return None
-    names = records.knob_names if records is not None else list(log.header.get("knob_names"))
+    header = records.header if records is not None else log.header
+    names = list(header.get("knob_names"))
+    yu, ku = log_units(header)
     say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
     if records is not None:
         start = records.starts[-1] if records.starts else {}
@@ -104,8 +117,8 @@ def print_summary(path: Path, out, log=None) -> dict | None:
     if best:
         say(
             out,
-            f"best y = {best['y']:.6g} at evaluation {best['step'] + 1}: "
-            f"{fmt_knobs(names, best['x'])}",
+            f"best y = {best['y']:.6g} {yu} at evaluation {best['step'] + 1}: "
+            f"{fmt_knobs(names, best['x'], ku)}",
         )
     final = end.get("final_knobs")
     if end.get("restored") is False:
@@ -113,17 +126,19 @@ def print_summary(path: Path, out, log=None) -> dict | None:
         say(out, f"KNOBS NOT RESTORED ({end.get('restored_to')}, {end.get('restore_attempts')} "
                   "attempt(s)): " + "; ".join(end.get("restore_errors") or []))  # fmt: skip
         if isinstance(last, list):
-            say(out, f"last setpoint acknowledged: {fmt_knobs(names, last)}")
+            say(out, f"last setpoint acknowledged: {fmt_knobs(names, last, ku)}")
         intended = end.get("last_intended")
         if isinstance(intended, list) and intended != last:
-            say(out, f"last setpoint intended (never acknowledged): {fmt_knobs(names, intended)}")
+            text = fmt_knobs(names, intended, ku)
+            say(out, f"last setpoint intended (never acknowledged): {text}")
         if isinstance(final, list):
-            say(out, f"readback now: {fmt_knobs(names, final)}")
+            say(out, f"readback now: {fmt_knobs(names, final, ku)}")
         elif final is not None:
             say(out, f"readback now: {final}")
         _against_target(names, end, out)
     elif isinstance(final, list):
-        say(out, f"knobs restored to {end.get('restored_to')}, readback: {fmt_knobs(names, final)}")
+        say(out, f"knobs restored to {end.get('restored_to')}, readback: "
+                  f"{fmt_knobs(names, final, ku)}")  # fmt: skip
     elif final is not None:
         say(out, f"knobs: restore {end.get('restored_to')}; readback {final}")
     if log is not None and log.write_error:
@@ -169,7 +184,8 @@ def print_resume_state(setup, records, out) -> None:
     intent = records.last_intent
     last = intent["x"] if intent else None
     say(out, "resume: the knobs now against the initial knobs of the first start (the restore "
-              "target) and the last setting commanded before the stop:")  # fmt: skip
+              "target) and the last setting commanded before the stop, in "
+              f"{setup.config.knob_unit}:")  # fmt: skip
     head = f"  {'knob':<14}{'initial':>12}{'now':>12}{'now-initial':>13}"
     say(out, head + (f"{'last commanded':>16}" if last else ""))
     for i, n in enumerate(names):

@@ -7,6 +7,8 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
       kind: sim
       error_seed: 1
       noise: 0.04                 # mA/min
+      # lattice: my_ring.json     # any ring: a lattice file, knobs = its element names,
+      # knob_calibration: 5.15e-4 #   K1s·L (1/m) per knob unit
     knobs:                        # name: [lower, upper], in knob units (amperes of the windings)
       01G-QSS4: [-30, 30]
       02G-QSS3: [-30, 30]
@@ -20,6 +22,8 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
     restore: initial              # or best (set the best observed point at the end)
     read_retries: 2
     objective_floor: null         # abort when a reading falls below this
+    objective_unit: mA/min        # units printed and drawn with the numbers (these defaults)
+    knob_unit: A
 
 Relative paths (``prior``, ``log``, ``lock_dir``) are taken relative to the run file's folder.
 
@@ -96,12 +100,30 @@ class SimMachineConfig(_Section):
     The configured knobs are the simulator's skew windings (names like ``01G-QSS4``); their bounds
     must lie within the simulator's range (±30 A).
 
+    Any ring instead of SPEAR3: ``lattice`` names a lattice file (a JSON element table like those
+    in ``pigp_torch/data``, or any file pyAT loads), the configured knobs are then element names
+    of that lattice (``FAM``, ``FAM[n]``, ``#i``) and ``knob_calibration`` gives K1s·L (1/m) per
+    knob unit (:class:`~pigp_torch.simulation.RingCoupling`); the bounds must lie within
+    ``±knob_limit``.
+
     Attributes:
         error_seed: error seed of the simulated machine.
-        optics: the SPEAR3 deck, ``"user"`` (default), ``"design"`` or ``"low_emittance"``.
-        noise: reading noise standard deviation (mA/min).
+        optics: the SPEAR3 deck, ``"user"`` (default), ``"design"`` or ``"low_emittance"``
+            (without ``lattice``).
+        noise: reading noise standard deviation (objective units, mA/min by default).
         seed: seed of the noise stream.
         x_init: knob values the machine starts at (unlisted knobs: 0).
+        lattice: a lattice file (relative paths from the run file's folder); default ``None``:
+            the shipped SPEAR3 deck ``optics``.
+        knob_calibration: with ``lattice``: K1s·L (1/m) per knob unit, one value or
+            ``{knob: value}`` for every knob (required with ``lattice``, refused without).
+        knob_limit: with ``lattice``: the simulator's symmetric knob range (knob units,
+            default 30).
+        loss_map: ``"model"`` (default): the ring's own loss-rate map (SPEAR3's constants);
+            ``"benchmark"``: the map that the benchmark and ``pigp demo`` give machine
+            ``error_seed`` (background and Touschek scale perturbed per seed,
+            :func:`pigp_torch.benchmark.protocol.machine_loss_map`) — the same machine as the
+            demo's "machine 1" for ``error_seed: 1``.
     """
 
     kind: Literal["sim"]
@@ -110,6 +132,27 @@ class SimMachineConfig(_Section):
     noise: Number = Field(0.04, ge=0.0)
     seed: Integer = 0
     x_init: dict[str, Number] | None = None
+    lattice: Path | None = None
+    knob_calibration: Number | dict[str, Number] | None = None
+    knob_limit: Number = Field(30.0, gt=0.0)
+    loss_map: Literal["model", "benchmark"] = "model"
+
+    @field_validator("lattice")
+    @classmethod
+    def _resolve_lattice(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        return _resolve(path, info)
+
+    @model_validator(mode="after")
+    def _lattice_and_calibration(self) -> SimMachineConfig:
+        if self.lattice is None and self.knob_calibration is not None:
+            raise ValueError("knob_calibration goes with lattice (SPEAR3 has its own)")
+        if self.lattice is not None and self.knob_calibration is None:
+            raise ValueError("with a lattice file, give knob_calibration (K1s·L per knob unit)")
+        cal = self.knob_calibration
+        values = cal.values() if isinstance(cal, dict) else [] if cal is None else [cal]
+        if any(not v > 0 for v in values):
+            raise ValueError(f"knob_calibration must be positive, got {cal}")
+        return self
 
 
 class EpicsMachineConfig(_Section):
@@ -204,6 +247,9 @@ class RunConfig(_Section):
         restore_interval: seconds between those attempts (default 1).
         lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
             ``<tmp>/pigp-locks``; see :mod:`pigp_torch.runlock`).
+        objective_unit: unit of the objective's readings, printed and drawn with every number
+            (default ``"mA/min"``, the SPEAR3 loss rate).
+        knob_unit: unit of the knob values and bounds (default ``"A"``, winding currents).
     """
 
     machine: MachineConfig
@@ -224,6 +270,8 @@ class RunConfig(_Section):
     restore_attempts: Integer = Field(3, ge=1, le=100)
     restore_interval: Number = Field(1.0, ge=0.0)
     lock_dir: Path | None = None
+    objective_unit: str = Field("mA/min", min_length=1)
+    knob_unit: str = Field("A", min_length=1)
 
     _prior = PrivateAttr(default=None)
 
@@ -291,6 +339,8 @@ class RunConfig(_Section):
             )
         m = self.machine
         if isinstance(m, SimMachineConfig):
+            if isinstance(m.knob_calibration, dict):
+                _same_knobs("machine.knob_calibration", m.knob_calibration, names)
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
             for name, value in (m.x_init or {}).items():
@@ -386,6 +436,17 @@ def _same_knobs(key: str, mapping: dict, names: list[str], what: str = "missing 
         raise ValueError(f"{key}: {what} {missing}")
     if extra:
         raise ValueError(f"{key}: {extra} are not configured knobs")
+
+
+def logged_units(header: dict) -> tuple[str, str]:
+    """``(objective_unit, knob_unit)`` of a run log's header (its configuration's); a log written
+    before run files named their units gets the defaults, ``("mA/min", "A")``."""
+    config = header.get("config") or {}
+    fields = RunConfig.model_fields
+    return (
+        str(config.get("objective_unit") or fields["objective_unit"].default),
+        str(config.get("knob_unit") or fields["knob_unit"].default),
+    )
 
 
 def config_digest(dump: dict) -> str:

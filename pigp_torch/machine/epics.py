@@ -196,6 +196,10 @@ class EpicsMachine(GuardedMachine):
                 raise MachineError(
                     f"{len(missing)} PV(s) did not connect within {self.timeout:g} s: "
                     + ", ".join(missing)
+                    + " (check the PV names and where Channel Access searches: "
+                    "EPICS_CA_ADDR_LIST and EPICS_CA_AUTO_ADDR_LIST; for pigp serve-sim on this "
+                    "host: export EPICS_CA_ADDR_LIST=127.0.0.1:<its --port> "
+                    "EPICS_CA_AUTO_ADDR_LIST=NO)"
                 )
             limits = self._ca.control_limits(self.setpoint_pvs, self.timeout)
             self.control_limits = torch.tensor(

@@ -63,6 +63,51 @@ def build_optimizer(config: RunConfig):
         raise ConfigError(f"method {name}: {err}") from err
 
 
+def simulated_ring(config: RunConfig):
+    r"""The simulated ring of a ``kind: sim`` run: the SPEAR3 deck ``optics`` with the run's
+    windings (:class:`~pigp_torch.simulation.Spear3Coupling`), or, with ``machine.lattice``, that
+    lattice file with the run's knobs as element names
+    (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
+    range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
+    loss-rate map that the benchmark gives machine ``error_seed``
+    (:func:`~pigp_torch.benchmark.protocol.machine_loss_map` of the ring's own map).
+
+    Raises:
+        ConfigError: a knob name the lattice does not have, or a lattice file that does not load.
+    """
+    m = config.machine
+    sim = _ring(config, None)
+    if m.loss_map == "benchmark":
+        from pigp_torch.simulation.calibration import machine_loss_map
+
+        sim = _ring(config, machine_loss_map(m.error_seed, sim.loss_rate_map))
+    return sim
+
+
+def _ring(config: RunConfig, loss_rate_map):
+    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import RingSpec
+
+    m, names = config.machine, config.knob_names
+    if m.lattice is None:
+        return Spear3Coupling(
+            m.error_seed, knobs=names, optics=m.optics, loss_rate_map=loss_rate_map
+        )
+    cal = m.knob_calibration
+    cal = tuple(float(cal[n]) for n in names) if isinstance(cal, dict) else float(cal)
+    spec = RingSpec(
+        lattice=str(m.lattice),
+        knobs=tuple(names),
+        knob_calibration=cal,
+        knob_limit=m.knob_limit,
+        knob_units=config.knob_unit,
+    )
+    try:
+        return spec.build(m.error_seed, loss_rate_map=loss_rate_map)
+    except (OSError, ValueError, KeyError) as err:
+        raise ConfigError(f"machine.lattice {m.lattice}: {err}") from err
+
+
 def build_machine(config: RunConfig):
     r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
     names, bounds, m = config.knob_names, config.bounds(), config.machine
@@ -71,9 +116,8 @@ def build_machine(config: RunConfig):
         tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
     if isinstance(m, SimMachineConfig):
         from pigp_torch.machine import SimulatedMachine
-        from pigp_torch.simulation import Spear3Coupling
 
-        sim = Spear3Coupling(m.error_seed, knobs=names, optics=m.optics)
+        sim = simulated_ring(config)
         outside = [
             n
             for n, lo, hi in zip(names, bounds[0].tolist(), bounds[1].tolist(), strict=True)

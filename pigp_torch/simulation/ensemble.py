@@ -244,6 +244,24 @@ def center_covariance(X: torch.Tensor) -> torch.Tensor:
     return C
 
 
+def check_ensemble_size(size: int, n_knobs: int, option: str = "--center-ensemble") -> None:
+    """Refuse, before any ring is computed, an ensemble too small for the covariance of the
+    optimum of ``n_knobs`` knobs (it needs more rings than knobs: at least ``n_knobs + 1``;
+    0 means no ensemble).
+
+    Raises:
+        ValueError: ``size`` negative, or between 1 and ``n_knobs``.
+    """
+    size, n_knobs = int(size), int(n_knobs)
+    if size < 0:
+        raise ValueError(f"{option} must be >= 0, got {size}")
+    if 0 < size <= n_knobs:
+        raise ValueError(
+            f"{option} {size} is too small for {n_knobs} knobs: the covariance of the optimum "
+            f"needs more rings than knobs, at least {n_knobs + 1} (0: no ensemble)"
+        )
+
+
 def with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None, *, progress=False):
     r"""``prior`` with ``center_cov`` and ``peak_shape`` from the optima of ``size`` simulated
     rings (error seeds :func:`ensemble_seeds`) of the data's ring.
@@ -259,10 +277,13 @@ def with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None, *
         progress: print a line and show a progress bar.
 
     Raises:
-        ValueError: the model ring or the machine is among the ensemble seeds, or the data's
-            ring has other knobs than the prior.
+        ValueError: ``size`` not above the number of knobs (:func:`check_ensemble_size`), the
+            model ring or the machine is among the ensemble seeds, or the data's ring has other
+            knobs than the prior.
     """
     from pigp_torch.simulation.spec import RingSpec, as_ring_spec
+
+    check_ensemble_size(size, len(prior.knob_names))
 
     if data_meta.get("ring"):
         spec = RingSpec.from_dict(data_meta["ring"])

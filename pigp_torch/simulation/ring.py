@@ -23,8 +23,10 @@ mA/min:
     \text{loss\_rate} = f_\infty + g\,\langle 1/(\sigma_x\sigma_y)\rangle .
 
 ``(f∞, g)`` is the ``loss_rate_map``; by default it is calibrated once per lattice and knob set so
-that error seed 1 has 0.5 mA/min with the knobs at zero and 1.7 mA/min at its optimum
-(:func:`calibrate_loss_rate_map`).
+that error seed 1 has 0.5 mA/min with the knobs at zero and 1.7 mA/min at its optimum, with a
+background f∞ of at least SPEAR3's share (19.6 %) of the knobs-off rate; where the knobs cannot
+raise ⟨1/(σxσy)⟩ that far (a few knobs), the optimum is lower than 1.7 mA/min
+(:func:`calibrate_loss_rate_map`). Every loss rate is then positive.
 """
 
 from __future__ import annotations

@@ -120,6 +120,16 @@ class RingSpec:
         return cls(**data)
 
 
+def knob_count(spec: RingSpec) -> int:
+    """The number of knobs of ``spec`` without building the ring (a SPEAR3 knob set is resolved
+    from its deck header)."""
+    if not isinstance(spec.knobs, str):
+        return len(spec.knobs)
+    from pigp_torch.simulation.spear3 import knob_names_for
+
+    return len(knob_names_for(spec.knobs, spec.optics))
+
+
 #: the SPEAR3 user-mode ring with the 13 knobs of the study (the default everywhere)
 SPEAR3 = RingSpec()
 

@@ -66,7 +66,10 @@ def test_a_run_prints_steps_and_a_summary_and_restores_the_knobs(tmp_path, capsy
     assert log.n_evaluations == 5 and len(steps) == 5
     assert steps[0].startswith("evaluation    1/5") and steps[-1].startswith("evaluation    5/5")
     step, _, y = log.best()
-    assert f"best y = {y:.6g} at evaluation {step + 1}" in out
+    assert f"best y = {y:.6g} mA/min at evaluation {step + 1}" in out
+    # units on every number: readings in mA/min, knob moves and settings in A
+    assert " mA/min  best = " in steps[1] and " A (0" in steps[1]
+    assert "readback: 01G-QSS4=0.002, 02G-QSS3=-0.001 (A)" in out
     assert "status: completed" in out and "knobs restored to initial" in out
     assert log.last_end["final_knobs"] == list(X_INIT.values()) == log.starts[0]["initial_knobs"]
     assert log.header["config"]["budget"] == 5 and log.header["knob_names"] == KNOBS
@@ -78,6 +81,7 @@ def test_dry_run_prints_the_plan_and_touches_nothing(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "plan: nelder-mead on the simulated ring" in out and "dry run" in out
     assert "01G-QSS4" in out and "0.002" in out and "0.001" in out  # now / max step columns
+    assert "lower (A)" in out and "max step (A)" in out and "noise 0.04 mA/min" in out
     assert not (tmp_path / "run.jsonl").exists()
 
 
@@ -269,3 +273,70 @@ def test_resume_without_config_prints_the_verified_safety_limits(tmp_path, capsy
     log.write_text("".join(lines))
     assert cli.main(["optimize", "--resume", str(log), "--dry-run"]) == 2
     assert "b.jsonl:1: the record does not match the log's hash chain" in capsys.readouterr().err
+
+
+def test_units_from_the_run_file_are_printed(tmp_path, capsys):
+    """objective_unit / knob_unit of the run file replace the defaults in the plan, the progress
+    lines and the summary."""
+    path = write_config(tmp_path, objective_unit="counts/s", knob_unit="mrad")
+    assert cli.main(["optimize", "--config", path]) == 0
+    out = capsys.readouterr().out
+    assert "lower (mrad)" in out and "noise 0.04 counts/s" in out
+    steps = [line for line in out.splitlines() if line.startswith("evaluation ")]
+    assert " counts/s  best = " in steps[2] and " mrad (" in steps[2]
+    assert "mA/min" not in out and "(A)" not in out and "(mrad)" in out
+    assert read_log(tmp_path / "run.jsonl").header["config"]["knob_unit"] == "mrad"
+
+
+def test_any_ring_from_a_lattice_file(tmp_path, capsys):
+    """machine.lattice: the SPEAR3 design deck as a user's file with three knobs by element name
+    (calibration per knob); the readings are that ring's loss rate (its error seed 2) plus noise,
+    and a lattice without calibration or an unknown element is refused with exit 2."""
+    import shutil
+
+    import torch
+
+    from pigp_torch.simulation import RingCoupling
+    from pigp_torch.simulation.deck import deck_path
+
+    shutil.copy(deck_path("design"), tmp_path / "ring.json")
+    knobs = ["01G-QSS4", "02G-QSS3", "05G-QSS3"]
+    machine = {"kind": "sim", "error_seed": 2, "noise": 0.0, "lattice": "ring.json",
+               "knob_calibration": dict.fromkeys(knobs, 5.15e-4)}  # fmt: skip
+    over = {"machine": machine, "knobs": {k: [-20, 20] for k in knobs}, "budget": 6}
+    assert cli.main(["optimize", "--config", write_config(tmp_path, **over)]) == 0
+    out = capsys.readouterr().out
+    assert "lattice " in out and "ring.json" in out
+    log = read_log(tmp_path / "run.jsonl")
+    assert log.n_evaluations == 6 and log.last_end["status"] == "completed"
+    ring = RingCoupling(tmp_path / "ring.json", knobs, 5.15e-4, error_seed=2)
+    torch.testing.assert_close(log.Y(), ring.loss_rate(log.X()), rtol=1e-9, atol=1e-12)
+    assert float(log.Y()[0]) != float(RingCoupling(tmp_path / "ring.json", knobs, 5.15e-4)
+                                      .loss_rate(log.X()[0]))  # seed 2, not seed 1  # fmt: skip
+    bad = dict(machine, knob_calibration=None)
+    path = write_config(tmp_path, "b.yaml", log="b.jsonl", **dict(over, machine=bad))
+    assert cli.main(["optimize", "--config", path]) == 2
+    assert "knob_calibration" in capsys.readouterr().err
+    wrong = {"NOPE": [-1, 1], **over["knobs"]}
+    path = write_config(tmp_path, "c.yaml", log="c.jsonl", **dict(over, knobs=wrong))
+    assert cli.main(["optimize", "--config", path]) == 2
+    assert "NOPE" in capsys.readouterr().err
+
+
+def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
+    """machine.loss_map: benchmark runs the benchmark's (and pigp demo's) machine of that seed:
+    the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
+    import torch
+
+    from pigp_torch.benchmark.protocol import build_machine
+    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import RingSpec
+
+    machine = {"kind": "sim", "error_seed": 1, "noise": 0.0, "loss_map": "benchmark"}
+    assert cli.main(["optimize", "--config", write_config(tmp_path, machine=machine)]) == 0
+    assert "error seed 1 with the benchmark's loss-rate map" in capsys.readouterr().out
+    log = read_log(tmp_path / "run.jsonl")
+    bench = build_machine(1, RingSpec(knobs=tuple(KNOBS)), True)
+    torch.testing.assert_close(log.Y(), bench.loss_rate(log.X()), rtol=1e-9, atol=1e-12)
+    own = Spear3Coupling(1, knobs=KNOBS).loss_rate(log.X())
+    assert float((log.Y() - own).abs().min()) > 1e-3  # another machine than SPEAR3's map gives

@@ -182,11 +182,12 @@ def test_connection_failure_lists_missing_pvs(ioc):
     t0 = time.monotonic()
     with pytest.raises(
         MachineError, match=r"2 PV\(s\) did not connect within 0.5 s: NO:SUCH:SETPOINT, NO:SUCH:PV"
-    ):
+    ) as err:
         EpicsMachine(
             names, torch.stack([-lim, lim]), "NO:SUCH:PV", setpoint_pvs=setpoints, timeout=0.5
         )
     assert time.monotonic() - t0 < 3.0
+    assert "EPICS_CA_ADDR_LIST" in str(err.value) and "EPICS_CA_AUTO_ADDR_LIST" in str(err.value)
 
 
 def test_close_and_context_manager(ioc):
