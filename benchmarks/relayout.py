@@ -20,11 +20,17 @@ What it does, in order:
    except this one and the shipped lattice tables: dotted module paths
    (``pigp_torch.runlog.writer`` -> ``pigp_torch.data.runlog.writer``, in code, strings,
    docstrings, Sphinx roles, notebooks' JSON), ``from pigp_torch import runlog``-style imports
-   of a moved module, and file paths (``pigp_torch/runlog/`` -> ``pigp_torch/data/runlog/``).
+   of a moved module, file paths (``pigp_torch/runlog/`` -> ``pigp_torch/data/runlog/``), and
+   the few literal references of :data:`LITERAL_RULES` (file names the demo cache hashes).
 3. Set ``LAYERS`` (and the table in the docstring) of ``tests/test_architecture.py`` to the new
    units; a unit it does not know (added on another branch) keeps its layer and is reported.
-4. Print what a regex cannot fix (paths joined from parts, ``from`` imports mixing moved and
-   unmoved modules) for a person to check.
+4. With ruff (when on ``PATH``), sort the imports and format the rewritten ``.py``/``.ipynb``
+   files, and wrap the docstring lines the longer paths pushed past 100 columns.
+5. Print what it cannot fix (paths joined from parts, quoted old file names, ``from`` imports
+   mixing moved and unmoved modules, lines still too long, conflicts, units it does not know,
+   an old README layout tree) as ``CHECK BY HAND`` lines, for a person to fix.
+
+Run logs are not affected: they record method and class names, never module paths.
 """
 
 from __future__ import annotations
