@@ -9,7 +9,7 @@ the medians. Shared machines are noisy: read the ratio, not the absolute numbers
 
 ``python benchmarks/ask_time.py --seeds 101-102 --budget 100 --driver`` compares instead the two
 L-BFGS-B paths with the defaults: scipy's compiled routine driven directly
-(:func:`pigp_torch._lbfgsb.minimize_lbfgsb`) against :func:`scipy.optimize.minimize`, and
+(:func:`pigp_torch._utils.lbfgsb.minimize_lbfgsb`) against :func:`scipy.optimize.minimize`, and
 checks that the two runs of each machine chose the same settings to the bit.
 """
 
@@ -22,7 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-import pigp_torch._lbfgsb as lbfgsb
+import pigp_torch._utils.lbfgsb as lbfgsb
 from pigp_torch.benchmark.protocol import run_one
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS

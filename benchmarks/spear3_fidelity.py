@@ -34,8 +34,8 @@ from test_fidelity import authors_precision, fidelity, model_precision
 
 def surrogate_row(sim, x, P, names) -> None:
     """Train the paper's chain on ``sim`` and print the fidelity of its Hessian at ``x``."""
+    from pigp_torch.data.sampling import generate_dataset
     from pigp_torch.prior import log_excess_hessian
-    from pigp_torch.simulation.sampling import generate_dataset
     from pigp_torch.surrogate import train_ensemble
 
     t = time.perf_counter()

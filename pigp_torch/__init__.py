@@ -1,8 +1,12 @@
 """pigp-torch: physics-informed Gaussian-process Bayesian optimization for particle accelerators.
 
-The package follows the method's chain: ``simulation`` (coupling model of a storage ring;
-the real SPEAR3 shipped) -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision
-matrix) -> ``kernels`` and ``models`` (GPs) -> ``optimizers`` (ask/tell) -> ``optimize`` (the loop).
+The package's top level is the method's chain, one package per stage: ``simulation`` (coupling
+model of a storage ring; the real SPEAR3 shipped) -> ``data`` (datasets drawn from it; run logs)
+-> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision matrix) -> ``kernels`` and
+``models`` (GPs, posteriors) -> ``optimizers`` and ``methods`` (ask/tell, the registry) ->
+``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). Around it: ``cli``
+and ``commands``, ``integrations`` (Xopt, Badger), ``benchmark``, ``reporting``, ``testing``;
+``_utils`` holds the plumbing every stage shares.
 
 Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a
 multi-threaded OpenBLAS on a busy machine, set ``OPENBLAS_NUM_THREADS=1`` before importing numpy

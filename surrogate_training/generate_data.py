@@ -1,7 +1,7 @@
 """Generate simulated coupling data: ``python surrogate_training/generate_data.py --n N -o FILE``.
 
 The same as ``pigp generate-data`` (see ``--help``); the sampling design is documented in
-:mod:`pigp_torch.simulation.sampling`.
+:mod:`pigp_torch.data.sampling`.
 """
 
 import sys

@@ -11,17 +11,17 @@ layer  units
 =====  =========================================================================================
 11     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
 10     ``commands`` (one module per ``pigp`` command), ``badger_plugins`` (Badger's entry point)
-9      ``benchmark`` (the protocol and the demo), ``report``, ``dashboard`` (figures, pages)
-8      ``run`` (a run of ``pigp optimize``: validated, built, resumed)
-7      ``loop`` (the optimization loop), ``testing`` (the simulated ring as EPICS servers)
-6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines),
-       ``ringargs`` (rings from command-line arguments)
+9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard)
+8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
+7      ``testing`` (the simulated ring as EPICS servers, ring options)
+6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)
-3      ``models`` (GP builders)
-2      ``kernels``, ``prior``, ``surrogate``, ``simulation``, ``runlog``
-1      ``_multistart``, ``config`` (run-file schema), ``dataset``, ``progress``, ``runlock``
-0      ``_utils``, ``_version``, ``_lbfgsb`` (scipy's L-BFGS-B, driven directly)
+3      ``models`` (GP builders, posteriors), ``data`` (datasets, sampling, run logs and locks,
+       lattice decks)
+2      ``kernels``, ``prior``, ``surrogate``, ``simulation``
+0      ``_utils`` (dtype and knob tensors, scipy's L-BFGS-B driven directly, multi-start),
+       ``_version``
 =====  =========================================================================================
 """
 
@@ -38,16 +38,15 @@ ROOT = "<root>"
 LAYERS: dict[str, int] = {
     **dict.fromkeys(("cli", ROOT), 11),
     **dict.fromkeys(("commands", "badger_plugins"), 10),
-    **dict.fromkeys(("benchmark", "report", "dashboard"), 9),
-    "run": 8,
-    **dict.fromkeys(("loop", "testing"), 7),
-    **dict.fromkeys(("methods", "machine", "ringargs"), 6),
+    **dict.fromkeys(("benchmark", "reporting"), 9),
+    "loop": 8,
+    "testing": 7,
+    **dict.fromkeys(("methods", "machine"), 6),
     "integrations": 5,
     "optimizers": 4,
-    "models": 3,
-    **dict.fromkeys(("kernels", "prior", "surrogate", "simulation", "runlog"), 2),
-    **dict.fromkeys(("_multistart", "config", "dataset", "progress", "runlock"), 1),
-    **dict.fromkeys(("_utils", "_version", "_lbfgsb"), 0),
+    **dict.fromkeys(("models", "data"), 3),
+    **dict.fromkeys(("kernels", "prior", "surrogate", "simulation"), 2),
+    **dict.fromkeys(("_utils", "_version"), 0),
 }
 
 

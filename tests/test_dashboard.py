@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from pigp_torch.dashboard import Dashboard, run_state
-from pigp_torch.runlog import RunLog
+from pigp_torch.data.runlog import RunLog
+from pigp_torch.reporting.dashboard import Dashboard, run_state
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 BROWSER = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -52,7 +52,7 @@ def test_state_of_a_run_log(tmp_path):
 def test_final_page_embeds_the_state_and_needs_no_server(tmp_path):
     """The final page: the state as JSON in the page (a '</script>' in a knob name cannot end the
     script), no polling, written next to the log."""
-    from pigp_torch.dashboard import final_page_path, page_html, write_final_page
+    from pigp_torch.reporting.dashboard import final_page_path, page_html, write_final_page
 
     with make_log(tmp_path / "run.jsonl", 3) as log:
         log.log_end("completed")

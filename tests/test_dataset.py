@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from pigp_torch.dataset import Dataset
+from pigp_torch.data.dataset import Dataset
 
 
 def make(n=5, d=3):

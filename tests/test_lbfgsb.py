@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-import pigp_torch._lbfgsb as lbfgsb
-from pigp_torch._lbfgsb import minimize_lbfgsb
+import pigp_torch._utils.lbfgsb as lbfgsb
+from pigp_torch._utils.lbfgsb import minimize_lbfgsb
 
 
 def rosenbrock(x):

@@ -7,10 +7,10 @@ import io
 import torch
 
 from pigp_torch import optimize
+from pigp_torch.data.runlog import read_log
+from pigp_torch.loop.progress import ProgressLine
 from pigp_torch.optimizers.base import AskTellOptimizer
-from pigp_torch.progress import ProgressLine
-from pigp_torch.report import run_report
-from pigp_torch.runlog import read_log
+from pigp_torch.reporting.report import run_report
 
 
 class _Noisy(AskTellOptimizer):

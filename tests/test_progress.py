@@ -8,8 +8,8 @@ import io
 import torch
 
 from pigp_torch.benchmark import METHODS, run_one
+from pigp_torch.loop.progress import ProgressLine, reporting_spec
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.progress import ProgressLine, reporting_spec
 
 
 def test_line_has_step_reading_best_move_and_time():
@@ -69,7 +69,7 @@ def _dummy_prior() -> PhysicsPrior:
 
 def test_a_rejected_prior_reads_as_the_method_working():
     """The prior check's notice says it is the method working as designed; others pass as is."""
-    from pigp_torch.progress import notice_text
+    from pigp_torch.loop.progress import notice_text
 
     out = io.StringIO()
     line = ProgressLine(3, ["a"], unit="A", objective_unit="mA/min", out=out, clock=lambda: 0.0)

@@ -12,7 +12,7 @@ import yaml
 
 from pigp_torch import cli
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.report import run_report, write_report
+from pigp_torch.reporting.report import run_report, write_report
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -118,7 +118,7 @@ def test_units_true_optimum_and_knob_colours_of_a_13_knob_run(tmp_path):
     have 13 different colours."""
     import matplotlib.pyplot as plt
 
-    from pigp_torch.report import draw_run
+    from pigp_torch.reporting.report import draw_run
     from pigp_torch.simulation import Spear3Coupling
 
     knobs = Spear3Coupling(1).knob_names
@@ -159,7 +159,7 @@ def test_an_epics_style_log_gets_its_run_file_units(tmp_path):
     """A run file's own units reach both axes (no simulated machine needed for the labels)."""
     import matplotlib.pyplot as plt
 
-    from pigp_torch.report import draw_run
+    from pigp_torch.reporting.report import draw_run
 
     path = write_run(tmp_path, method="nelder-mead", budget=3, objective_unit="counts/s",
                      knob_unit="mrad")  # fmt: skip

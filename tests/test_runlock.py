@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from pigp_torch.runlock import LockHeld, RunLock, holding, log_lock, machine_locks, pv_prefixes
-from pigp_torch.runlog import RunLog, read_log
+from pigp_torch.data.runlock import LockHeld, RunLock, holding, log_lock, machine_locks, pv_prefixes
+from pigp_torch.data.runlog import RunLog, read_log
 
 
 def test_a_second_writer_of_a_log_is_refused_and_the_log_stays_intact(tmp_path):
@@ -34,7 +34,7 @@ def test_a_lock_held_by_another_process_is_refused_and_a_dead_ones_is_stale(tmp_
     clean-up), the lock is free again and its leftover description is reported as stale."""
     path = tmp_path / "x.lock"
     code = (
-        "import sys, time; from pigp_torch.runlock import RunLock; "
+        "import sys, time; from pigp_torch.data.runlock import RunLock; "
         f"RunLock({str(path)!r}, 'test').acquire(); print('held', flush=True); time.sleep(60)"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)

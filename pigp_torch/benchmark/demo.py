@@ -15,16 +15,16 @@ import torch
 
 from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
 from pigp_torch.benchmark.protocol import machine_loss_map, run_one
+from pigp_torch.data.sampling import generate_dataset
+from pigp_torch.loop.progress import reporting_spec
 from pigp_torch.methods import METHODS
 from pigp_torch.prior import prior_from_model
-from pigp_torch.progress import reporting_spec
 from pigp_torch.simulation import Spear3Coupling
 from pigp_torch.simulation.ensemble import (
     ENSEMBLE_SEED0,
     check_ensemble_size,
     with_center_ensemble,
 )
-from pigp_torch.simulation.sampling import generate_dataset
 from pigp_torch.simulation.spear3 import knob_names_for
 from pigp_torch.surrogate import train_ensemble
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS

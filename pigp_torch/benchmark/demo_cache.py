@@ -29,7 +29,7 @@ import torch
 from pigp_torch._utils import DTYPE
 
 #: Parts of the package whose code or data determine the cached numbers.
-_SOURCES = ("simulation", "surrogate", "prior", "data", "_multistart.py", "_utils.py", "dataset.py")
+_SOURCES = ("simulation", "surrogate", "prior", "data", "_utils")
 
 
 def default_cache_dir() -> Path:

@@ -129,7 +129,7 @@ def model_prior(
 
     ``source="exact"`` (default) takes the optimum and Hessian of the ring's own differentiable
     loss rate; ``"surrogate"`` follows the paper's chain: ``n_samples`` simulated readings of
-    the model ring (:func:`~pigp_torch.simulation.sampling.generate_dataset`) train a
+    the model ring (:func:`~pigp_torch.data.sampling.generate_dataset`) train a
     ``members``-network surrogate (:func:`~pigp_torch.surrogate.train_ensemble`), whose
     optimum and autograd Hessian give the prior.
 
@@ -161,7 +161,7 @@ def model_prior(
     model = sim.loss_rate
     provenance["source"] = source
     if source == "surrogate":
-        from pigp_torch.simulation.sampling import generate_dataset
+        from pigp_torch.data.sampling import generate_dataset
         from pigp_torch.surrogate import train_ensemble
 
         if progress:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from pigp_torch.ringargs import add_machine_arguments, simulator_from_args
+from pigp_torch.testing.ringargs import add_machine_arguments, simulator_from_args
 
 
 def cmd_generate_data(args) -> int:
-    from pigp_torch.simulation.sampling import generate_dataset
+    from pigp_torch.data.sampling import generate_dataset
 
     if args.n < 1:  # before the machine is built and its optimum searched (seconds)
         raise ValueError(f"n must be positive, got {args.n}")

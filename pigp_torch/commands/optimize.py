@@ -1,20 +1,20 @@
 r"""``pigp optimize``: an online run from a run file, with a run log, safe stops and resume.
 
-``pigp optimize --config run.yaml`` validates the file (:mod:`pigp_torch.config`), takes the
-run's locks (the run log's, and on EPICS one per PV prefix: :mod:`pigp_torch.runlock`), builds
+``pigp optimize --config run.yaml`` validates the file (:mod:`pigp_torch.loop.config`), takes the
+run's locks (the run log's, and on EPICS one per PV prefix: :mod:`pigp_torch.data.runlock`), builds
 the optimizer and then the machine, writes the run log's header (configuration and its sha256,
 prior provenance) and runs :func:`pigp_torch.optimize` with ramped moves, intent records, read
 retries, checked readings, the objective floor and the restore of the initial knobs (or the best
 point with ``restore: best``). One line per evaluation goes to stdout (step N of M counted from
 1, the reading, the best so far, the largest knob move from the previous evaluation and the
-seconds the step took: :class:`pigp_torch.progress.ProgressLine`), then a summary: status, best
+seconds the step took: :class:`pigp_torch.loop.progress.ProgressLine`), then a summary: status, best
 reading and where, and where the knobs were put back — or, if they could not be, the last
 setpoint written.
 
 ``--resume LOG`` continues a logged run: the log's hash chain is verified (an edited log is
 refused, exit 2, naming the first line that does not match; a torn last line is dropped with one
 warning; a log of an older version without a chain resumes with a warning), the optimizer is
-rebuilt from the logged evaluations (:func:`pigp_torch.runlog.replay`), the knobs are compared
+rebuilt from the logged evaluations (:func:`pigp_torch.data.runlog.replay`), the knobs are compared
 with the initial knobs of the run's first start (the restore target) and the last commanded
 setting, and the run goes on up to the budget (which may be raised in the run file; nothing else
 may change). Without ``--config`` the configuration in the log header is used after its sha256 is
@@ -23,8 +23,8 @@ locks, connects and prints the plan without moving anything or writing the log; 
 is named, with what a run would do, instead of being refused.
 
 How the run ended is taken from the end record the loop handed to the run log
-(:attr:`pigp_torch.runlog.RunLog.end_record`), written or not: a full log disk stops the run
-(:class:`~pigp_torch.runlog.LogWriteError`, the knobs restored by the loop, one line, the
+(:attr:`pigp_torch.data.runlog.RunLog.end_record`), written or not: a full log disk stops the run
+(:class:`~pigp_torch.data.runlog.LogWriteError`, the knobs restored by the loop, one line, the
 summary) and never hides that the knobs were not restored (exit 3). Python warnings are printed
 as one plain line each while the command runs.
 """
@@ -158,7 +158,7 @@ def register(sub, bench) -> None:
 
 def _locks(config, log_path: Path):
     """The run's locks, not yet taken: the log's, then one per PV prefix (EPICS)."""
-    from pigp_torch.runlock import log_lock, machine_locks
+    from pigp_torch.data.runlock import log_lock, machine_locks
 
     locks = [log_lock(log_path)]
     pvs = config.pv_names()
@@ -184,7 +184,7 @@ def _check_log_folder(path: Path) -> None:
 
 def _existing_log(path: Path) -> str:
     """What an existing run log at ``path`` holds, in words (for the refusal and the dry run)."""
-    from pigp_torch.runlog import read_log
+    from pigp_torch.data.runlog import read_log
 
     try:
         records = read_log(path, warn=False)
@@ -198,7 +198,7 @@ def _existing_log(path: Path) -> str:
 def _read_resumed(path: Path, *, warn_out=None):
     """The run log to continue, read and its hash chain verified; its warnings (a torn last
     line, no chain) are printed once, one plain line each, to ``warn_out``."""
-    from pigp_torch.runlog import read_log
+    from pigp_torch.data.runlog import read_log
 
     records = read_log(path, warn=False)
     if warn_out is not None:
@@ -213,7 +213,7 @@ def _plain_warnings():
     line) while the command runs; the run log's own warnings are printed by the command once."""
     import warnings
 
-    from pigp_torch.runlog import RunLogWarning
+    from pigp_torch.data.runlog import RunLogWarning
 
     previous = warnings.formatwarning
     warnings.formatwarning = lambda message, *a, **k: f"warning: {message}\n"
@@ -233,9 +233,9 @@ def cmd_optimize(args) -> int:
 def _optimize(args) -> int:
     import torch
 
+    from pigp_torch.data.runlock import LockHeld, holding
+    from pigp_torch.loop.run import build_run, check_resume, load_config, logged_config
     from pigp_torch.machine.errors import MachineError
-    from pigp_torch.run import build_run, check_resume, load_config, logged_config
-    from pigp_torch.runlock import LockHeld, holding
 
     torch.set_num_threads(1)  # an online run is measurement-bound; do not crowd the host
     out = sys.stdout
@@ -313,10 +313,10 @@ def _optimize(args) -> int:
 
 
 def _run(args, setup, records, log_lock) -> int:
+    from pigp_torch.data.runlog import LogWriteError, RunLog
     from pigp_torch.loop import RunAborted, Terminated
+    from pigp_torch.loop.run import advance_simulated_noise
     from pigp_torch.machine.errors import MachineError
-    from pigp_torch.run import advance_simulated_noise
-    from pigp_torch.runlog import LogWriteError, RunLog
 
     config = setup.config
     out = sys.stdout
@@ -345,7 +345,7 @@ def _run(args, setup, records, log_lock) -> int:
         print_resume_state(setup, records, out)
     with contextlib.suppress(OSError, ValueError):
         out.flush()
-    from pigp_torch.progress import ProgressLine
+    from pigp_torch.loop.progress import ProgressLine
 
     report = ProgressLine(
         config.budget,
@@ -360,7 +360,7 @@ def _run(args, setup, records, log_lock) -> int:
         report.seed([r["x"] for r in records.evaluations], [r["y"] for r in records.evaluations])
     dashboard = None
     if getattr(args, "dashboard", False):
-        from pigp_torch.dashboard import Dashboard, final_page_path
+        from pigp_torch.reporting.dashboard import Dashboard, final_page_path
 
         dashboard = Dashboard(log.path, port=args.dashboard_port)
         say(out, f"dashboard: {dashboard.url} (while the run goes; the final page is then "

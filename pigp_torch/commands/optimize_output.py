@@ -7,7 +7,7 @@ import contextlib
 import math
 from pathlib import Path
 
-from pigp_torch.config.schema import logged_units as log_units
+from pigp_torch.loop.config.schema import logged_units as log_units
 
 
 def fmt_knobs(names, values, unit: str = "") -> str:
@@ -84,12 +84,12 @@ def say(out, text: str = "") -> None:
 def print_summary(path: Path, out, log=None) -> dict | None:
     """Print how the run ended; returns the end record used.
 
-    With a :class:`~pigp_torch.runlog.RunLog` (the session just run) the end record is
+    With a :class:`~pigp_torch.data.runlog.RunLog` (the session just run) the end record is
     ``log.end_record``, written to the file or not (a full disk never hides whether the knobs
     were restored); an earlier session's end record in the file is never taken for it. Without
     one, the log's last end record is used. The evaluations are counted from the file.
     """
-    from pigp_torch.runlog import read_log
+    from pigp_torch.data.runlog import read_log
 
     records = None
     try:

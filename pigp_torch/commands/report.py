@@ -12,8 +12,8 @@ def cmd_report(args) -> int:
     import sys
     import warnings
 
-    from pigp_torch.report import write_report
-    from pigp_torch.runlog import RunLogWarning, read_log
+    from pigp_torch.data.runlog import RunLogWarning, read_log
+    from pigp_torch.reporting.report import write_report
 
     target = Path(args.target)
     if target.is_file():

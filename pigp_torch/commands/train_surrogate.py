@@ -60,7 +60,7 @@ def format_training_report(report: dict) -> str:
 def cmd_train_surrogate(args) -> int:
     import torch
 
-    from pigp_torch.dataset import Dataset
+    from pigp_torch.data.dataset import Dataset
     from pigp_torch.surrogate import save_surrogate, train_ensemble
 
     data = Dataset.load(args.data)

@@ -17,8 +17,8 @@ posterior mean) is the method's own.
 Serialization: the prior is stored as plain data (:meth:`PhysicsPrior.to_dict
 <pigp_torch.prior.PhysicsPrior.to_dict>`); importing this module registers the generator in
 Xopt's registry under ``"pigp_physics"``, so ``Xopt.from_yaml`` (and Badger, which lists Xopt's
-registry) re-creates it. On reload the data is replayed (:func:`pigp_torch.runlog.replay`: one ask
-per row, checked against the row) so that the optimizer's state is the one of the run; when the
+registry) re-creates it. On reload the data is replayed (:func:`pigp_torch.data.runlog.replay`: one
+ask per row, checked against the row) so that the optimizer's state is the one of the run; when the
 rows were not all proposed by the generator (an initial design) they are told without asking
 (the fit then starts cold once).
 """
@@ -42,6 +42,7 @@ except ImportError as err:  # pragma: no cover - depends on the environment
     ) from err
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.data.runlog import ReplayError, replay
 from pigp_torch.integrations.xopt_vocs import (
     XOPT_ERROR,
     continuous_bounds,
@@ -50,7 +51,6 @@ from pigp_torch.integrations.xopt_vocs import (
 )
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.runlog import ReplayError, replay
 
 __all__ = ["PhysicsGenerator"]
 

@@ -5,8 +5,8 @@ r"""The optimization loop: measure the start point, then ask -> evaluate -> tell
 :mod:`~pigp_torch.loop.moves`, the signals and exceptions :mod:`~pigp_torch.loop.signals`.
 
 The loop is the only place that talks to both an optimizer and a machine; it records every
-evaluation in a tidy table (and, optionally, in a :class:`~pigp_torch.runlog.RunLog` on disk) and,
-on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
+evaluation in a tidy table (and, optionally, in a :class:`~pigp_torch.data.runlog.RunLog` on disk)
+and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
 
 **Safety rules on a machine** (any :class:`~pigp_torch.machine.base.Machine`, not only EPICS):
 
@@ -95,9 +95,9 @@ on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules below.
 
 **Run log and resume.** With ``log`` every evaluation is appended (and fsynced) before the next
 step, framed by a ``start`` and an ``end`` record (status, reason, where the knobs were put
-back and their readback); see :mod:`pigp_torch.runlog`. ``resume=`` continues a logged run: the
-optimizer is rebuilt with :func:`~pigp_torch.runlog.replay` and the run goes on at the next step
-until ``budget`` evaluations in all; the knobs are restored to the initial knobs of the logged
+back and their readback); see :mod:`pigp_torch.data.runlog`. ``resume=`` continues a logged run: the
+optimizer is rebuilt with :func:`~pigp_torch.data.runlog.replay` and the run goes on at the next
+step until ``budget`` evaluations in all; the knobs are restored to the initial knobs of the logged
 run's first start (not to where a crash left them), and the new start record notes where the
 knobs were found (``found_knobs``).
 """

@@ -14,6 +14,7 @@ import torch
 
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
 from pigp_torch._utils import utc_now as _utc_now
+from pigp_torch.data.runlog import RunLog, RunRecords, evaluation_rows, replay
 from pigp_torch.loop.moves import (
     averaged_parts,
     checked_read,
@@ -28,7 +29,6 @@ from pigp_torch.loop.readings import ReadingJudge, confirm_best
 from pigp_torch.loop.signals import SignalGuard, classify
 from pigp_torch.loop.steps import best_row, knob_columns, logged_initial_knobs, run_steps
 from pigp_torch.machine.base import Machine, check_setting
-from pigp_torch.runlog import RunLog, RunRecords, evaluation_rows, replay
 
 
 def optimize(
@@ -78,9 +78,9 @@ def optimize(
         method: value of the ``method`` column (default ``optimizer.name``).
         progress: show a tqdm progress bar.
         callback: called with each new row (a dict) after its step (not for replayed rows).
-        log: a :class:`~pigp_torch.runlog.RunLog` (left open), or a path: a new log is created
+        log: a :class:`~pigp_torch.data.runlog.RunLog` (left open), or a path: a new log is created
             (or, when resuming, the log is continued) and closed at the end.
-        resume: the records of a logged run (:func:`~pigp_torch.runlog.read_log`) or its
+        resume: the records of a logged run (:func:`~pigp_torch.data.runlog.read_log`) or its
             evaluation records; ``optimizer`` must be fresh and built as in that run.
         options: the safety options (:class:`~pigp_torch.loop.options.RunOptions`; default
             ``RunOptions()``).
@@ -98,7 +98,7 @@ def optimize(
         RunAborted: a reading below ``objective_floor``.
         MachineError: from the machine, a reading taken while the knobs moved, or a failed
             readback check after the restore (the end record then has ``restored`` false).
-        pigp_torch.runlog.ReplayError: the resumed log does not match the optimizer.
+        pigp_torch.data.runlog.ReplayError: the resumed log does not match the optimizer.
     """
     if int(budget) != budget or budget < 1:
         raise ValueError(f"budget must be a positive integer, got {budget}")

@@ -9,8 +9,8 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils import utc_now as _utc_now
+from pigp_torch.data.runlog import RunRecords
 from pigp_torch.loop.signals import RunAborted, SignalGuard
-from pigp_torch.runlog import RunRecords
 
 _RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
 

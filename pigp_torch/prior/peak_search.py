@@ -10,8 +10,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from pigp_torch._multistart import maximize_from
 from pigp_torch._utils import DTYPE, as_knob_tensor
+from pigp_torch._utils.multistart import maximize_from
 
 #: Rows of f evaluated at once while sampling.
 SAMPLE_CHUNK = 1024

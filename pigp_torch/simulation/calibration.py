@@ -8,8 +8,8 @@ import math
 import numpy as np
 import torch
 
-from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE
+from pigp_torch._utils.multistart import find_optimum
 from pigp_torch.simulation import reference as _ref
 
 

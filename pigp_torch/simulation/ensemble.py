@@ -21,8 +21,8 @@ from typing import NamedTuple
 
 import torch
 
-from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE
+from pigp_torch._utils.multistart import find_optimum
 from pigp_torch.simulation.ring import RingCoupling
 from pigp_torch.simulation.spear3 import Spear3Coupling
 

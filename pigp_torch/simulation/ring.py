@@ -38,8 +38,8 @@ import at
 import numpy as np
 import torch
 
-from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE, as_knob_tensor
+from pigp_torch._utils.multistart import find_optimum
 from pigp_torch.simulation import errors as _errors
 from pigp_torch.simulation import reference as _ref
 from pigp_torch.simulation.calibration import calibrate_error_scale, calibrate_loss_rate_map

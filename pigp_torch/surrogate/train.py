@@ -151,7 +151,7 @@ def train_surrogate(
     the optimum on 100k samples in 13 knobs (about 35 s on one CPU core).
 
     Args:
-        data: a :class:`~pigp_torch.dataset.Dataset` or a pair ``(X, y)`` with ``X``: ``N x d``
+        data: a :class:`~pigp_torch.data.dataset.Dataset` or a pair ``(X, y)`` with ``X``: ``N x d``
             knob settings (raw units) and ``y``: ``N`` loss rates.
         f_inf: background loss rate :math:`f_\infty`; default: ``data.metadata["f_inf"]``.
         bounds: ``2 x d`` knob bounds; default: ``data.metadata["bounds"]``.

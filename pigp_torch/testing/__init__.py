@@ -42,7 +42,7 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument(
         "--seed", type=int, default=1, help="error seed of the simulated ring (default 1)"
     )
-    from pigp_torch.ringargs import add_ring_arguments
+    from pigp_torch.testing.ringargs import add_ring_arguments
 
     add_ring_arguments(p)
     p.add_argument(

@@ -140,7 +140,7 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
 
 def sim_ioc_from_args(args):
     """The IOC described by the options of :func:`pigp_torch.testing.add_ioc_arguments`."""
-    from pigp_torch.ringargs import ring_spec_from_args
+    from pigp_torch.testing.ringargs import ring_spec_from_args
 
     return make_sim_ioc(
         args.seed,

@@ -18,11 +18,11 @@ import pytest
 import torch
 import yaml
 
-import pigp_torch.run as run_module
-import pigp_torch.runlog.writer as writer_module
+import pigp_torch.data.runlog.writer as writer_module
+import pigp_torch.loop.run as run_module
 from pigp_torch import cli
+from pigp_torch.data.runlog import read_log
 from pigp_torch.machine import SimulatedMachine
-from pigp_torch.runlog import read_log
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 X_INIT = {"01G-QSS4": 0.002, "02G-QSS3": -0.001}
@@ -175,7 +175,7 @@ def test_a_completed_run_whose_end_record_cannot_be_written_exits_1(
 
 
 CHILD = (
-    "import errno, os, sys; import pigp_torch.runlog.writer as w; n = int(sys.argv[1])\n"
+    "import errno, os, sys; import pigp_torch.data.runlog.writer as w; n = int(sys.argv[1])\n"
     "class Full:\n"
     "    calls = 0\n"
     "    def write(self, fd, data):\n"
@@ -461,7 +461,7 @@ def test_a_log_held_by_a_running_run_exits_4(tmp_path, capsys):
         [
             sys.executable,
             "-c",
-            "import sys, time; from pigp_torch.runlock import log_lock; "
+            "import sys, time; from pigp_torch.data.runlock import log_lock; "
             "lock = log_lock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(60)",
             str(log),
         ],

@@ -15,7 +15,7 @@ import yaml
 
 from pigp_torch import cli
 from pigp_torch.commands.optimize import register
-from pigp_torch.runlog import read_log
+from pigp_torch.data.runlog import read_log
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 X_INIT = {"01G-QSS4": 0.002, "02G-QSS3": -0.001}

@@ -16,8 +16,8 @@ import torch
 import yaml
 
 from pigp_torch import cli
+from pigp_torch.data.runlog import read_log
 from pigp_torch.machine.epics import EpicsMachine
-from pigp_torch.runlog import read_log
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 MAX_STEP = 0.2  # of the half-range (15 A): 3 A

@@ -19,9 +19,9 @@ import pytest
 import torch
 import yaml
 
-import pigp_torch.runlog.writer as writer_module
+import pigp_torch.data.runlog.writer as writer_module
 from pigp_torch import cli
-from pigp_torch.runlog import read_log
+from pigp_torch.data.runlog import read_log
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 

@@ -97,7 +97,7 @@ def test_ioc_killed_mid_run(ring, tmp_path):
     the completed rows are intact. The end record's last setpoint is the last one the IOC
     acknowledged — the values of the last puts in its own put log — not step 3's setting,
     which was intended (logged as an intent) but never reached it."""
-    from pigp_torch.runlog import read_log
+    from pigp_torch.data.runlog import read_log
     from pigp_torch.testing.ioc import start_sim_ioc
 
     log = tmp_path / "r.jsonl"

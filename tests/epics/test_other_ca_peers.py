@@ -105,7 +105,7 @@ def test_optimize_then_sigterm_against_a_real_epics_base_ioc(tmp_path):
         assert [last[k] for k in KNOBS] == start  # exactly, at the IOC
         worst = max(abs(e["value"] - e["previous"]) for e in entries)
         assert worst <= 0.2 * 15.0 * (1 + 1e-9), worst
-        from pigp_torch.runlog import read_log
+        from pigp_torch.data.runlog import read_log
 
         end = read_log(log).last_end
         assert end["restored"] is True and end["final_setpoints"] == start

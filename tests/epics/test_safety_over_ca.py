@@ -21,10 +21,10 @@ import torch
 import yaml
 
 from pigp_torch import cli, optimize
+from pigp_torch.data.runlog import read_log
 from pigp_torch.machine.epics import EpicsMachine
 from pigp_torch.machine.errors import MachineError, ReadError
 from pigp_torch.optimizers import NelderMead
-from pigp_torch.runlog import read_log
 
 from .conftest import FAST
 

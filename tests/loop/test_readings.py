@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from pigp_torch.data.runlog import read_log
 from pigp_torch.loop import optimize
 from pigp_torch.loop.readings import (
     AGREE_A,
@@ -17,7 +18,6 @@ from pigp_torch.loop.readings import (
     plausible_reading,
 )
 from pigp_torch.machine import GuardedMachine
-from pigp_torch.runlog import read_log
 from tests.loop.problems import BOUNDS, D
 from tests.loop.test_safety import INITIAL, Walk
 
@@ -107,7 +107,7 @@ def test_an_unconfirmed_best_restores_the_initial_knobs(tmp_path):
     end = records.last_end
     assert end["best"]["y"] == 50.0 and end["best_confirmation"]["confirmed"] is False
     assert end["restored_to"] == "initial (best not confirmed)" and m.get().tolist() == INITIAL
-    from pigp_torch.report import _notices
+    from pigp_torch.reporting.report import _notices
 
     notices = _notices(records, records.X(), None, ["qs1", "qs2"])
     step = end["best"]["step"] + 1

@@ -15,11 +15,11 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from pigp_torch.data.runlog import read_log, replay
 from pigp_torch.loop import RunAborted, Terminated, optimize
 from pigp_torch.machine import GuardedMachine, MachineError, ReadError
 from pigp_torch.optimizers import OPTIMIZERS, NelderMead
 from pigp_torch.optimizers.base import AskTellOptimizer
-from pigp_torch.runlog import read_log, replay
 from tests.loop.problems import BOUNDS, D, bowl
 
 

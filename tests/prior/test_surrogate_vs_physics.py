@@ -3,9 +3,9 @@
 import pytest
 import torch
 
+from pigp_torch.data.sampling import generate_dataset
 from pigp_torch.prior import log_excess_hessian, prior_from_model
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.sampling import generate_dataset
 from pigp_torch.surrogate import train_ensemble
 
 

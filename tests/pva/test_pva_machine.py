@@ -11,11 +11,11 @@ import torch
 import yaml
 
 from pigp_torch import cli, optimize
+from pigp_torch.data.runlog import read_log
 from pigp_torch.machine import Machine
 from pigp_torch.machine.errors import MachineError, ReadError
 from pigp_torch.machine.pva import PvaMachine
 from pigp_torch.optimizers import NelderMead
-from pigp_torch.runlog import read_log
 
 from .conftest import FAST, KNOBS, UPDATE_PERIOD, setpoints
 
@@ -112,7 +112,7 @@ def test_pigp_optimize_over_pvaccess_and_the_machine_lock(
 ):
     """`pigp optimize` with `protocol: pva`: a run completes with the knobs restored; while
     another run holds the machine's PVs the run is refused (exit 4)."""
-    from pigp_torch.runlock import holding, machine_locks
+    from pigp_torch.data.runlock import holding, machine_locks
 
     server, conf = ring
     for key, value in conf.items():

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from pigp_torch.config import ConfigError
-from pigp_torch.run import RunSetup, load_config
+from pigp_torch.loop.config import ConfigError
+from pigp_torch.loop.run import RunSetup, load_config
 from tests.run.test_run_files import KNOBS, sim, write_prior
 
 

@@ -10,14 +10,14 @@ import pytest
 import torch
 import yaml
 
-from pigp_torch.config import ConfigError
+from pigp_torch.data.runlog import RunLog, read_log
+from pigp_torch.loop.config import ConfigError
+from pigp_torch.loop.run import RunSetup, build_run, check_resume, load_config, validate_config
 from pigp_torch.methods import method_options
 from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.run import RunSetup, build_run, check_resume, load_config, validate_config
-from pigp_torch.runlog import RunLog, read_log
 
 D = torch.float64
 KNOBS = ["01G-QSS4", "02G-QSS3"]
@@ -344,7 +344,7 @@ def test_a_logged_configuration_is_verified_against_its_digest(tmp_path):
     """The header stores the configuration's sha256; logged_config accepts it as written and
     refuses an edited header (a doubled step limit) or one without a digest — a second check
     behind the hash chain, which read_log applies first (verify=False reads past it here)."""
-    from pigp_torch.run import logged_config
+    from pigp_torch.loop.run import logged_config
 
     cfg = validate_config(sim(), base_dir=tmp_path)
     RunLog.create(cfg.log, build_run(cfg).header()).close()

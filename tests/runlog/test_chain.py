@@ -13,8 +13,8 @@ import warnings
 
 import pytest
 
-import pigp_torch.runlog.writer as writer_module
-from pigp_torch.runlog import (
+import pigp_torch.data.runlog.writer as writer_module
+from pigp_torch.data.runlog import (
     LogWriteError,
     RunLog,
     TornLineWarning,

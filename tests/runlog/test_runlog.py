@@ -8,11 +8,11 @@ import os
 import pytest
 import torch
 
+from pigp_torch.data.runlog import FORMAT_TAG, ReplayError, RunLog, file_sha256, read_log, replay
 from pigp_torch.loop import optimize
+from pigp_torch.loop.run import advance_simulated_noise, build_run, validate_config
 from pigp_torch.optimizers import RCDS, NelderMead
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.run import advance_simulated_noise, build_run, validate_config
-from pigp_torch.runlog import FORMAT_TAG, ReplayError, RunLog, file_sha256, read_log, replay
 
 D = torch.float64
 BOUNDS = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)

@@ -3,9 +3,9 @@
 import torch
 
 from pigp_torch.cli import main
-from pigp_torch.dataset import Dataset
+from pigp_torch.data.dataset import Dataset
+from pigp_torch.data.sampling import sampling_design
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.sampling import sampling_design
 
 
 def test_design_fractions_and_bounds():

@@ -8,7 +8,7 @@ import time
 import pytest
 import torch
 
-from pigp_torch.dataset import Dataset
+from pigp_torch.data.dataset import Dataset
 from pigp_torch.surrogate import train_surrogate
 from pigp_torch.surrogate.train import split_indices, target_values
 

@@ -10,7 +10,7 @@ import torch
 
 from pigp_torch.cli import main as pigp
 from pigp_torch.commands.train_surrogate import add_train_arguments
-from pigp_torch.dataset import Dataset
+from pigp_torch.data.dataset import Dataset
 from pigp_torch.surrogate import load_surrogate, train_surrogate
 
 

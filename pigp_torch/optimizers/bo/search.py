@@ -4,7 +4,7 @@ r"""The search part of the Bayesian-optimization core: maximize a bound acquisit
   given starts and the last proposals climbed together by the batched projected Newton method
   (:func:`maximize_in_unit_box`, needs Hessians) or as one stacked L-BFGS-B problem (gradients);
 * :class:`MultiStartLBFGSB`: Sobol starts plus the given ones by batched L-BFGS-B
-  (:func:`pigp_torch._multistart.find_optimum`, gradients);
+  (:func:`pigp_torch._utils.multistart.find_optimum`, gradients);
 * :class:`OptimizeAcqf`: BoTorch's ``optimize_acqf`` on a BoTorch acquisition object.
 
 Every search works in the unit cube of the box (:math:`\mathbf x = \boldsymbol\ell + \mathbf u
@@ -19,9 +19,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from pigp_torch._lbfgsb import minimize_lbfgsb
-from pigp_torch._multistart import find_optimum
 from pigp_torch._utils import DTYPE
+from pigp_torch._utils.lbfgsb import minimize_lbfgsb
+from pigp_torch._utils.multistart import find_optimum
 from pigp_torch.optimizers.bo.region import clamp_to_box
 
 #: Solvers of :class:`NewtonSearch` and their default ``options``: the batched projected Newton
@@ -305,7 +305,8 @@ class NewtonSearch:
 
 class MultiStartLBFGSB:
     """``n_starts`` Sobol points (scrambled with ``seed``) plus the given starts, climbed by
-    batched L-BFGS-B with the closed-form gradient (:func:`~pigp_torch._multistart.find_optimum`).
+    batched L-BFGS-B with the closed-form gradient
+    (:func:`~pigp_torch._utils.multistart.find_optimum`).
 
     Args:
         n_starts: Sobol starts (>= 0).

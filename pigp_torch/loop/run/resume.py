@@ -4,10 +4,10 @@ run file matches it, and the simulated machine's noise stream put where the run 
 
 from __future__ import annotations
 
-from pigp_torch.config import ConfigError, RunConfig, config_digest
+from pigp_torch.data.runlog import file_sha256
+from pigp_torch.loop.config import ConfigError, RunConfig, config_digest
+from pigp_torch.loop.run.validate import validate_config
 from pigp_torch.machine import SimulatedMachine
-from pigp_torch.run.validate import validate_config
-from pigp_torch.runlog import file_sha256
 
 
 def check_resume(config: RunConfig, records) -> None:

@@ -8,8 +8,8 @@ from typing import Any
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.runlog.format import ReplayError, floats
-from pigp_torch.runlog.reader import RunRecords
+from pigp_torch.data.runlog.format import ReplayError, floats
+from pigp_torch.data.runlog.reader import RunRecords
 
 
 def _evaluations(records) -> list[dict]:

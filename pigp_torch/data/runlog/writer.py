@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from pigp_torch._utils import utc_now
-from pigp_torch.runlog.format import (
+from pigp_torch.data.runlog.format import (
     END_STATUSES,
     FORMAT_TAG,
     FORMAT_VERSION,
@@ -21,7 +21,7 @@ from pigp_torch.runlog.format import (
     chain_hash,
     floats,
 )
-from pigp_torch.runlog.reader import read_log
+from pigp_torch.data.runlog.reader import read_log
 
 
 def _package_version() -> str:
@@ -36,10 +36,10 @@ class RunLog:
     Create a new log with :meth:`create` (writes the header) or continue one with
     :meth:`append` (a resume). Usable as a context manager.
 
-    Each record gets its ``hash`` (the chain of :mod:`pigp_torch.runlog.format`) and goes to the
-    file in one unbuffered ``os.write`` followed by ``os.fsync``. A write that fails (disk full,
-    I/O error) raises :class:`~pigp_torch.runlog.format.LogWriteError` and leaves nothing of the
-    record in the file: the file is cut back to its last complete record (if even that fails,
+    Each record gets its ``hash`` (the chain of :mod:`pigp_torch.data.runlog.format`) and goes to
+    the file in one unbuffered ``os.write`` followed by ``os.fsync``. A write that fails (disk full,
+    I/O error) raises :class:`~pigp_torch.data.runlog.format.LogWriteError` and leaves nothing of
+    the record in the file: the file is cut back to its last complete record (if even that fails,
     every later write is refused, so a partial line never ends up inside the log). A later record
     may still be written once space is free again; the chain continues from the last record
     written.
@@ -92,7 +92,7 @@ class RunLog:
             header: entries of the header record.
             overwrite: replace an existing file.
             lock: ``True`` (default) takes the log's lock, held until :meth:`close`; an
-                acquired :class:`~pigp_torch.runlock.RunLock` is adopted (released at close);
+                acquired :class:`~pigp_torch.data.runlock.RunLock` is adopted (released at close);
                 ``False``: no lock.
 
         Raises:
@@ -100,7 +100,7 @@ class RunLog:
                 by accident: continue it with :meth:`append`).
             ValueError: ``header`` is not JSON-serializable or uses a reserved key.
             LogWriteError: the header could not be written (the file was removed).
-            pigp_torch.runlock.LockHeld: another process holds the log's lock.
+            pigp_torch.data.runlock.LockHeld: another process holds the log's lock.
         """
         path = Path(path)
         extra = dict(header or {})
@@ -148,14 +148,14 @@ class RunLog:
         r"""Open an existing log to continue it (resume).
 
         The log's lock is taken first (``lock`` as in :meth:`create`); the log is read and its
-        hash chain verified (:func:`~pigp_torch.runlog.read_log`, ``warn`` as there); then a
+        hash chain verified (:func:`~pigp_torch.data.runlog.read_log`, ``warn`` as there); then a
         last line cut short by a crash during a write (no final newline) is removed. New records
         continue the chain (a log without one, from an older version, stays without one).
 
         Raises:
             FileNotFoundError: no such file.
             ValueError: the file is not a run log, or its hash chain is broken.
-            pigp_torch.runlock.LockHeld: another process holds the log's lock.
+            pigp_torch.data.runlock.LockHeld: another process holds the log's lock.
         """
         path = Path(path)
         if not path.is_file():
@@ -338,7 +338,7 @@ class RunLog:
 def _take_lock(path: Path, lock):
     """The log's lock per ``lock`` (True: take it; a RunLock: adopt it; False/None: none)."""
     if lock is True:
-        from pigp_torch.runlock import log_lock
+        from pigp_torch.data.runlock import log_lock
 
         return log_lock(path).acquire()
     if lock is False or lock is None:

@@ -1,6 +1,6 @@
-r"""A run file checked as a whole: the schema (:mod:`pigp_torch.config`), then the method against
-the registry (:mod:`pigp_torch.methods`: a run-file method, known options, a prior file and a
-maximized objective for the methods built from the physics prior), then the prior file (its knobs
+r"""A run file checked as a whole: the schema (:mod:`pigp_torch.loop.config`), then the method
+against the registry (:mod:`pigp_torch.methods`: a run-file method, known options, a prior file and
+a maximized objective for the methods built from the physics prior), then the prior file (its knobs
 must be the run's, same names in the same order).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pigp_torch.config import RunConfig, invalid, parse_config, read_run_file
+from pigp_torch.loop.config import RunConfig, invalid, parse_config, read_run_file
 from pigp_torch.methods import METHODS, run_file_methods
 from pigp_torch.prior import PhysicsPrior
 
@@ -112,8 +112,9 @@ def load_prior(path: Path, names: list[str]) -> PhysicsPrior:
 
 
 def validate_config(data: Any, *, base_dir: str | Path | None = None, source: str = "config"):
-    r"""Validate a configuration mapping as a whole; returns a :class:`~pigp_torch.config.RunConfig`
-    with its prior loaded (:meth:`~pigp_torch.config.RunConfig.get_prior`).
+    r"""Validate a configuration mapping as a whole; returns a
+    :class:`~pigp_torch.loop.config.RunConfig` with its prior loaded
+    (:meth:`~pigp_torch.loop.config.RunConfig.get_prior`).
 
     Args:
         data: the parsed file (a mapping).

@@ -31,8 +31,8 @@ import warnings
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from pigp_torch.config.schema import logged_units
-from pigp_torch.runlog import read_log
+from pigp_torch.data.runlog import read_log
+from pigp_torch.loop.config.schema import logged_units
 
 #: Hosts the dashboard may listen on.
 LOOPBACK = ("127.0.0.1", "localhost", "::1")

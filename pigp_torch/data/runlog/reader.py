@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.runlog.format import (
+from pigp_torch.data.runlog.format import (
     CHAINED_VERSION,
     FORMAT_TAG,
     HASH_KEY,
@@ -114,7 +114,7 @@ def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> Run
     Checks: the first record is a header with the expected format tag and version; every record
     has a known type; evaluation steps are ``0, 1, 2, ...`` with ``x`` of ``len(knob_names)``
     finite values and a finite ``y``; with ``verify`` (default) every record of a version-3 log
-    matches the hash chain (:mod:`pigp_torch.runlog.format`), so a log edited anywhere is
+    matches the hash chain (:mod:`pigp_torch.data.runlog.format`), so a log edited anywhere is
     refused with the first line that does not match. A last line without its final newline was
     cut short by an interrupted write (the writer ends every record with one): it is skipped;
     an invalid line elsewhere is an error. A log of an older version (no chain) is read but
@@ -125,9 +125,9 @@ def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> Run
     Args:
         path: the run log.
         verify: check the hash chain (``False``: read an edited log anyway, e.g. to inspect it).
-        warn: issue a :class:`~pigp_torch.runlog.format.TornLineWarning` for a cut last line and
-            an :class:`~pigp_torch.runlog.format.UnchainedLogWarning` for a log without a chain
-            (the same lines are in :attr:`RunRecords.warnings` either way).
+        warn: issue a :class:`~pigp_torch.data.runlog.format.TornLineWarning` for a cut last line
+            and an :class:`~pigp_torch.data.runlog.format.UnchainedLogWarning` for a log without a
+            chain (the same lines are in :attr:`RunRecords.warnings` either way).
 
     Raises:
         FileNotFoundError: no such file.

@@ -1,5 +1,5 @@
 r"""Reading run files: YAML or JSON (a key given twice refused), validated against the schema
-(:mod:`pigp_torch.config.schema`); every problem is listed, one line each.
+(:mod:`pigp_torch.loop.config.schema`); every problem is listed, one line each.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from pigp_torch.config.schema import (
+from pigp_torch.loop.config.schema import (
     ConfigError,
     EpicsMachineConfig,
     MethodConfig,
@@ -74,7 +74,7 @@ def format_errors(err: ValidationError, data: Any) -> list[str]:
 def parse_config(data: Any, *, base_dir: str | Path | None = None, source: str = "config"):
     r"""Validate a configuration mapping against the schema; returns a :class:`RunConfig`.
 
-    The method and the prior file are not checked here (:func:`pigp_torch.run.validate_config`
+    The method and the prior file are not checked here (:func:`pigp_torch.loop.run.validate_config`
     checks them).
 
     Args:

@@ -42,7 +42,7 @@ field takes no ``5.0``; ``maximize`` takes ``true`` or ``false`` only.
 ``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``; :mod:`pigp_torch.methods` describes them)
 and ``method.options`` are its builder's options. This module checks the file's structure only;
 the method, its options and the prior file are checked against the method registry by
-:func:`pigp_torch.run.validate_config` (which ``pigp optimize`` calls).
+:func:`pigp_torch.loop.run.validate_config` (which ``pigp optimize`` calls).
 
 Every error is reported at once, one line per problem, as a :class:`ConfigError` (a
 ``ValueError``) naming the key: a wrong key, a missing PV name, bounds with lower >= upper.
@@ -203,8 +203,8 @@ class ObjectiveConfig(_Section):
 
 class MethodConfig(_Section):
     """The optimizer: ``name`` (a run-file method of :mod:`pigp_torch.methods`, checked by
-    :func:`pigp_torch.run.validate_config`), its ``options`` and its ``seed`` (BayesOpt's per-ask
-    seed; Nelder–Mead and RCDS are deterministic)."""
+    :func:`pigp_torch.loop.run.validate_config`), its ``options`` and its ``seed`` (BayesOpt's
+    per-ask seed; Nelder–Mead and RCDS are deterministic)."""
 
     name: str
     seed: Integer = 0
@@ -246,7 +246,7 @@ class RunConfig(_Section):
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
         lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
-            ``<tmp>/pigp-locks``; see :mod:`pigp_torch.runlock`).
+            ``<tmp>/pigp-locks``; see :mod:`pigp_torch.data.runlock`).
         objective_unit: unit of the objective's readings, printed and drawn with every number
             (default ``"mA/min"``, the SPEAR3 loss rate).
         knob_unit: unit of the knob values and bounds (default ``"A"``, winding currents).
@@ -420,7 +420,7 @@ class RunConfig(_Section):
 
     def get_prior(self):
         """The loaded :class:`~pigp_torch.prior.PhysicsPrior` (``None`` without a prior file, or
-        before :func:`pigp_torch.run.validate_config` loaded it)."""
+        before :func:`pigp_torch.loop.run.validate_config` loaded it)."""
         return self._prior
 
     def attach_prior(self, prior) -> None:

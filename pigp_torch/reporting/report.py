@@ -1,6 +1,6 @@
 r"""Figures for the logbook: one online run from its run log, or a ``pigp compare`` folder.
 
-:func:`run_report` reads a JSON-lines run log (:mod:`pigp_torch.runlog`) and draws, against the
+:func:`run_report` reads a JSON-lines run log (:mod:`pigp_torch.data.runlog`) and draws, against the
 evaluation number:
 
 * the readings with the noise band (:math:`\pm\sigma_n`: the simulated machine's noise, else the
@@ -37,13 +37,13 @@ from pathlib import Path
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.config.schema import logged_units
-from pigp_torch.runlog import read_log
+from pigp_torch.data.runlog import read_log
+from pigp_torch.loop.config.schema import logged_units
 
 
 def _load_run_config(records):
     """The logged configuration (``None`` when the header has none or it no longer loads)."""
-    from pigp_torch.run import logged_config
+    from pigp_torch.loop.run import logged_config
 
     try:
         return logged_config(records)
@@ -53,7 +53,7 @@ def _load_run_config(records):
 
 def _fitted_optimum(config, X: torch.Tensor, Y: torch.Tensor) -> dict | None:
     """``pigp-physics``: refit the form to all readings; centre, its std, value at the optimum."""
-    from pigp_torch.run import build_optimizer
+    from pigp_torch.loop.run import build_optimizer
 
     if config is None or config.method.name != "pigp-physics" or len(Y) < 2:
         return None
@@ -109,7 +109,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
     true = optimum = None
     sigma = noise
     if config is not None and config.machine.kind == "sim":
-        from pigp_torch.run import build_machine
+        from pigp_torch.loop.run import build_machine
 
         machine = build_machine(config)
         sigma = float(config.machine.noise)
@@ -149,7 +149,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
 def _true_optimum(machine, bounds: torch.Tensor, x_best: torch.Tensor):
     """The simulated machine's largest noise-free value within the run's ``bounds``: multi-start
     L-BFGS-B (8 Sobol starts, zero knobs and the run's best setting)."""
-    from pigp_torch._multistart import find_optimum
+    from pigp_torch._utils.multistart import find_optimum
 
     def f(x):
         return machine.sim.sim.loss_rate(x)  # the _BoundedSim's ring (differentiable)

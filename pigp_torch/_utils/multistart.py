@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pigp_torch._lbfgsb import minimize_lbfgsb
 from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds
+from pigp_torch._utils.lbfgsb import minimize_lbfgsb
 
 
 def find_optimum(

@@ -1,9 +1,9 @@
-"""Run files of ``pigp optimize``: the schema (:mod:`~pigp_torch.config.schema`) and reading
-(:mod:`~pigp_torch.config.files`). Nothing here imports a layer above ``_utils``; the run is
-checked against the method registry and built by :mod:`pigp_torch.run`."""
+"""Run files of ``pigp optimize``: the schema (:mod:`~pigp_torch.loop.config.schema`) and reading
+(:mod:`~pigp_torch.loop.config.files`). Nothing here imports a layer above ``_utils``; the run is
+checked against the method registry and built by :mod:`pigp_torch.loop.run`."""
 
-from pigp_torch.config.files import format_errors, invalid, parse_config, read_run_file
-from pigp_torch.config.schema import (
+from pigp_torch.loop.config.files import format_errors, invalid, parse_config, read_run_file
+from pigp_torch.loop.config.schema import (
     ConfigError,
     EpicsMachineConfig,
     MachineConfig,

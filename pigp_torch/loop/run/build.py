@@ -11,7 +11,8 @@ from typing import Any
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.config import (
+from pigp_torch.data.runlog import file_sha256
+from pigp_torch.loop.config import (
     ConfigError,
     EpicsMachineConfig,
     RunConfig,
@@ -19,7 +20,6 @@ from pigp_torch.config import (
     config_digest,
 )
 from pigp_torch.methods import METHODS, RunContext
-from pigp_torch.runlog import file_sha256
 
 
 class _BoundedSim:

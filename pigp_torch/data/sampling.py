@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._version import __version__
-from pigp_torch.dataset import Dataset
+from pigp_torch.data.dataset import Dataset
 
 LOCAL_SCALES = (0.01, 0.3)  # range of the log-uniform cloud widths (normalized knobs)
 

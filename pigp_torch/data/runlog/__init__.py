@@ -24,22 +24,22 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
   ``restored`` (whether the knobs were put back), ``last_setpoint`` (the last setting the
   machine acknowledged; ``last_intended`` the last one sent) and ``restore_attempts``.
 
-While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.runlock.log_lock`,
-``<log>.lock``): a second writer is refused with :class:`~pigp_torch.runlock.LockHeld`.
+While a :class:`RunLog` is open it holds the log's lock (:func:`pigp_torch.data.runlock.log_lock`,
+``<log>.lock``): a second writer is refused with :class:`~pigp_torch.data.runlock.LockHeld`.
 
 Each record is written with one unbuffered ``os.write``, then ``os.fsync``: a crash (even a
 power cut after the call returned) loses no completed evaluation. A last line cut short by a crash
 during a write (no final newline) is ignored when reading (with one
-:class:`~pigp_torch.runlog.format.TornLineWarning`) and cut off before appending. A write that
-fails (disk full) raises :class:`~pigp_torch.runlog.format.LogWriteError` and leaves nothing of
+:class:`~pigp_torch.data.runlog.format.TornLineWarning`) and cut off before appending. A write that
+fails (disk full) raises :class:`~pigp_torch.data.runlog.format.LogWriteError` and leaves nothing of
 its record in the file; a log whose header could not be written is removed.
 
 **Tamper evidence.** Every record carries ``hash``, a sha256 chained to the previous record's
-(the header starts the chain; :mod:`pigp_torch.runlog.format`). :func:`read_log` verifies the
+(the header starts the chain; :mod:`pigp_torch.data.runlog.format`). :func:`read_log` verifies the
 chain and refuses a log edited anywhere — a changed reading, initial knob or header bound, a line
 removed or inserted — naming the first line that does not match. Logs written before the chain
 (versions 1 and 2) are still read and resumed, with an
-:class:`~pigp_torch.runlog.format.UnchainedLogWarning`: they cannot be verified (records
+:class:`~pigp_torch.data.runlog.format.UnchainedLogWarning`: they cannot be verified (records
 appended to such a log stay unchained).
 
 Why JSON lines and not CSV/Parquet: records of different types share one file, a reader needs
@@ -52,7 +52,7 @@ the state the run had.
 """
 
 from pigp_torch._utils import utc_now
-from pigp_torch.runlog.format import (
+from pigp_torch.data.runlog.format import (
     END_STATUSES,
     FORMAT_TAG,
     FORMAT_VERSION,
@@ -66,9 +66,9 @@ from pigp_torch.runlog.format import (
     chain_hash,
     file_sha256,
 )
-from pigp_torch.runlog.reader import RunRecords, read_log
-from pigp_torch.runlog.replay import evaluation_rows, replay
-from pigp_torch.runlog.writer import RunLog
+from pigp_torch.data.runlog.reader import RunRecords, read_log
+from pigp_torch.data.runlog.replay import evaluation_rows, replay
+from pigp_torch.data.runlog.writer import RunLog
 
 __all__ = [
     "END_STATUSES",
