@@ -18,7 +18,7 @@ import torch
 import yaml
 
 from pigp_torch import cli
-from pigp_torch.runlog import read_log
+from pigp_torch.data.runlog import read_log
 from tests.epics.test_faults_over_ca import (
     fault_at_read,
     final_setpoints,
