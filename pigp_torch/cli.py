@@ -31,6 +31,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "optimize",
     "serve_sim",
     "bench_bo",
+    "bench_ares",
     "report",
 )
 
