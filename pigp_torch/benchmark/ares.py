@@ -85,13 +85,11 @@ def run_ares_trial(
     ctx = RunContext(
         machine=machine,
         seed=seed,
-        noise=None,
+        noise=float(noise) if noise > 0 else None,
         archive_size=0,
         maximize=machine.maximize,
     )
     opt = spec.build(ctx)
-    if hasattr(opt, "set_target"):
-        opt.set_target(trial.target)
     rows = []
 
     def record(step: int) -> None:

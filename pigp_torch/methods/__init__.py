@@ -15,11 +15,12 @@ one module with its builder and one :func:`register` call below.
 * ``nelder-mead``, ``rcds``: direct methods (:mod:`~pigp_torch.methods.direct`).
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
-* ``published-bo``, ``published-nm``: the published recipes of the ARES-EA linac task
-  (:mod:`~pigp_torch.methods.ares`; not in run files).
+* ``published-bo``, ``published-nm``: the published recipes of the ARES-EA linac task, and
+  ``ares-physics``, its model's unknowns fitted online (:mod:`~pigp_torch.methods.ares`; not in
+  run files).
 """
 
-from pigp_torch.methods.ares import build_published_bo, build_published_nm
+from pigp_torch.methods.ares import build_ares_physics, build_published_bo, build_published_nm
 from pigp_torch.methods.direct import build_nelder_mead, build_rcds
 from pigp_torch.methods.fast import build_pigp_fast, fast_bo_options
 from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp, machine_archive
@@ -88,6 +89,7 @@ register(MethodSpec("xopt-pigp", build_xopt_pigp, "gp"))
 # ARES-EA (linac, screen): the published recipes (pigp_torch.methods.ares)
 register(MethodSpec("published-bo", build_published_bo, "gp"))
 register(MethodSpec("published-nm", build_published_nm, "direct"))
+register(MethodSpec("ares-physics", build_ares_physics, "gp"))
 
 __all__ = [
     "BO_DEFAULTS",

@@ -56,3 +56,97 @@ def build_published_nm(ctx: RunContext, *, initial_simplex_size: float = 0.25, *
     return NelderMead(
         ctx.bounds, initial_simplex_size=initial_simplex_size, maximize=ctx.maximize, **options
     )
+
+
+#: The unknowns ``ares-physics`` fits: the incoming beam's transverse centroid and sizes (the
+#: optics of the segment do not depend on the energy, bunch length or energy spread) and the
+#: eight misalignments.
+ARES_FITTED_INCOMING: tuple[str, ...] = (
+    "mu_x",
+    "mu_xp",
+    "mu_y",
+    "mu_yp",
+    "sigma_x",
+    "sigma_xp",
+    "sigma_y",
+    "sigma_yp",
+)
+
+
+def ares_model_parts(segment=None, lattice=None):
+    r"""The ARES-EA model for :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`:
+    ``(model, center, half_width)``.
+
+    ``model(X, theta)``: ``N x 5`` knobs and ``P = 16`` unknowns (:data:`ARES_FITTED_INCOMING`,
+    then the misalignments q1_x … screen_y, m and rad) -> ``N x 4`` beam on the screen (m); the
+    energy, bunch length and energy spread are held at the middle of their ranges. ``center`` and
+    ``half_width``: the middle and half width of the ranges the trials were drawn from.
+    """
+    from pigp_torch.simulation.ares import INCOMING_NAMES, AresSegment, load_lattice
+
+    lattice = load_lattice() if lattice is None else lattice
+    segment = AresSegment(lattice) if segment is None else segment
+    rng = lattice["incoming_beam_ranges"]
+    lo = torch.tensor(rng["low"], dtype=DTYPE)
+    hi = torch.tensor(rng["high"], dtype=DTYPE)
+    order = list(rng["order"])
+    if order != list(INCOMING_NAMES):
+        raise ValueError(f"lattice incoming-beam order {order} is not {list(INCOMING_NAMES)}")
+    idx = torch.tensor([order.index(n) for n in ARES_FITTED_INCOMING])
+    m_lo, m_hi = lattice["misalignments"]["range_m"]
+    center = torch.cat([(lo + hi)[idx] / 2, torch.full((8,), (m_lo + m_hi) / 2, dtype=DTYPE)])
+    half = torch.cat([(hi - lo)[idx] / 2, torch.full((8,), (m_hi - m_lo) / 2, dtype=DTYPE)])
+    base = (lo + hi) / 2
+
+    def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        inc = base.expand(*theta.shape[:-1], len(INCOMING_NAMES))
+        inc = torch.cat([inc[..., :1], theta[..., :8], inc[..., 9:]], dim=-1)
+        return segment.observe(X, inc, theta[..., 8:], energy=base[0])
+
+    return model, center, half
+
+
+def smooth_mae(target: torch.Tensor, eps: float = 0.5e-6):
+    r"""``N x 4 -> N``: :math:`\tfrac14 \sum_i \sqrt{(o_i - t_i)^2 + \epsilon^2}` (m), the mean
+    absolute error smoothed below :math:`\epsilon` (default 0.5 µm) so that it has gradients."""
+    t = torch.as_tensor(target, dtype=DTYPE)
+
+    def goal(obs: torch.Tensor) -> torch.Tensor:
+        return ((obs - t).square() + eps**2).sqrt().mean(-1)
+
+    return goal
+
+
+def build_ares_physics(
+    ctx: RunContext, *, obs_sd: float | None = None, obs_sd_floor: float = 1e-6, **options
+):
+    r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
+    setting the fitted model's optimum for the machine's target inside a trust region
+    (:class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`).
+
+    Args:
+        obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
+            (``ctx.noise``: the screen noise in m, ``None``: unknown).
+        obs_sd_floor: the smallest noise assumed (default 1 µm).
+        options: :class:`FittedModelOptimizer` options.
+    """
+    from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+
+    machine = ctx.machine
+    target = getattr(machine, "target", None)
+    if target is None:
+        raise ValueError("ares-physics needs an ARES machine with a target beam")
+    model, center, half = ares_model_parts()
+    if obs_sd is None:
+        obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
+    return FittedModelOptimizer(
+        ctx.bounds,
+        model=model,
+        goal=smooth_mae(target),
+        theta_center=center,
+        theta_half_width=half,
+        obs_sd=obs_sd,
+        seed=ctx.seed,
+        maximize=ctx.maximize,
+        **options,
+    )

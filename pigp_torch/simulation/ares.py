@@ -176,9 +176,10 @@ class AresSegment:
         """Total length of the segment (m)."""
         return float(sum(float(e.get("length", 0.0)) for e in self.lattice["elements"]))
 
-    def incoming_beam(self, incoming: torch.Tensor):
+    def incoming_beam(self, incoming: torch.Tensor, energy: torch.Tensor | None = None):
         r"""A :class:`cheetah.ParameterBeam` from ``... x 11`` incoming parameters
-        (:data:`INCOMING_NAMES`, SI units), uncorrelated, electrons."""
+        (:data:`INCOMING_NAMES`, SI units), uncorrelated, electrons; ``energy`` (eV), when given,
+        replaces ``incoming[..., 0]``."""
         ch = _cheetah()
         p = torch.as_tensor(incoming, dtype=self.dtype)
         if p.shape[-1] != len(INCOMING_NAMES):
@@ -195,12 +196,16 @@ class AresSegment:
             sigma_py=v["sigma_yp"],
             sigma_tau=v["sigma_s"],
             sigma_p=v["sigma_p"],
-            energy=v["energy"],
+            energy=v["energy"] if energy is None else torch.as_tensor(energy, dtype=self.dtype),
             dtype=self.dtype,
         )
 
     def observe(
-        self, knobs: torch.Tensor, incoming: torch.Tensor, misalignments: torch.Tensor
+        self,
+        knobs: torch.Tensor,
+        incoming: torch.Tensor,
+        misalignments: torch.Tensor,
+        energy: torch.Tensor | None = None,
     ) -> torch.Tensor:
         r"""The beam on the screen :math:`(\mu_x, \sigma_x, \mu_y, \sigma_y)` in m.
 
@@ -208,6 +213,9 @@ class AresSegment:
             knobs: ``... x 5`` settings (k1 in 1/m², angles in rad), :data:`KNOB_NAMES` order.
             incoming: ``... x 11`` incoming beam (:data:`INCOMING_NAMES`).
             misalignments: ``... x 8`` misalignments in m (:data:`MISALIGNMENT_NAMES`).
+            energy: the beam energy (eV), replacing ``incoming[..., 0]`` when given (a fixed
+                energy keeps the transfer maps unbatched when only the other parameters vary,
+                e.g. under forward-mode autograd).
 
         Returns:
             ``B x 4`` (``B`` the broadcast batch shape of the three arguments), differentiable in
@@ -227,7 +235,13 @@ class AresSegment:
         el["AREAMQZM2"].misalignment = m[..., 2:4]
         el["AREAMQZM3"].misalignment = m[..., 4:6]
         el["AREABSCR1"].misalignment = m[..., 6:8]
-        self.segment.track(self.incoming_beam(incoming))
+        # Cheetah caches each element's transfer map under the id() and version of its tensors;
+        # the views assigned above are new objects whose ids Python may reuse from freed ones, and
+        # forward-mode tangents do not enter the key. Dropping the caches makes every call
+        # recompute its maps (a few 7 x 7 products) instead of possibly reusing stale ones.
+        for module in self.segment.modules():
+            module.__dict__.pop("_cache", None)
+        self.segment.track(self.incoming_beam(incoming, energy))
         read = el["AREABSCR1"].get_read_beam()
         return torch.stack([read.mu_x, read.sigma_x, read.mu_y, read.sigma_y], dim=-1)
 
