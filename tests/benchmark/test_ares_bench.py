@@ -140,3 +140,22 @@ def test_bench_ares_errors(tmp_path, capsys):
     assert main(["bench", "ares", "--trial-ids", "400", "-o", str(tmp_path)]) == 2
     assert "not in" in capsys.readouterr().err
     assert main(["bench", "ares", "--trial-ids", "9-3", "-o", str(tmp_path)]) == 2
+
+
+def test_default_methods_are_ours_and_the_published():
+    """Without --methods the bench runs the physics method and the two published recipes."""
+    from pigp_torch.benchmark.ares import default_ares_methods
+
+    assert default_ares_methods() == ["ares-physics", "published-bo", "published-nm"]
+
+
+@pytest.mark.slow
+def test_ares_physics_reaches_target_on_a_tuning_trial(trials):
+    """On tuning trial 3 (noise-free) the online-fitted model brings the beam within 20 um of the
+    target in 12 readings, from about 600 um at the start."""
+    from pigp_torch.benchmark.ares import run_ares_trial
+
+    df = run_ares_trial(trials[3], "ares-physics", steps=12, seed=3)
+    assert df["mae_true"].iloc[0] > 300e-6
+    assert df["mae_true"].min() < 20e-6
+    assert df["mae_true"].iloc[-1] == pytest.approx(df.loc[df["step"] < 12, "mae_true"].min())

@@ -30,6 +30,7 @@ def test_every_method_name_is_known_to_the_benchmark():
     names = {"pigp", "pigp-zero-mean", "pigp-physics", "pigp-physics-box", "pigp-physics-mean"}
     names |= {"pigp-fast", "ml2", "nelder-mead", "rcds", "xopt-ucb", "xopt-ucb-travel"}
     names |= {"xopt-pigp"}
+    names |= {"published-bo", "published-nm", "ares-physics"}  # the ARES-EA linac's methods
     assert set(BENCHMARK_METHODS) == names
     assert set(METHODS) <= set(BENCHMARK_METHODS)
     assert all(BENCHMARK_METHODS[n] is METHODS[n] for n in METHODS)  # no second copy
