@@ -32,6 +32,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "serve_sim",
     "badger_setup",
     "bench_bo",
+    "bench_ares",
     "report",
 )
 

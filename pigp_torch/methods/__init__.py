@@ -15,6 +15,9 @@ one module with its builder and one :func:`register` call below.
 * ``nelder-mead``, ``rcds``: direct methods (:mod:`~pigp_torch.methods.direct`).
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
+* ``published-bo``, ``published-nm``: the published recipes of the ARES-EA linac task, and
+  ``ares-physics``, its model's unknowns fitted online (:mod:`~pigp_torch.methods.ares`; not in
+  run files).
 * benchmark variants (not in run files): ``pigp-zero-mean``, ``pigp`` with a zero prior mean
   (Fig. 2c); ``pigp-physics-box``, ``pigp-physics`` with what the model ring alone gives (its own
   shape and the isotropic box prior on the centre, 1 half-range; no error ensemble).
@@ -23,6 +26,7 @@ A further variant is one entry: ``register(METHODS["pigp"].with_options(name="pi
 kernel="rq"))``.
 """
 
+from pigp_torch.methods.ares import build_ares_physics, build_published_bo, build_published_nm
 from pigp_torch.methods.direct import build_nelder_mead, build_rcds
 from pigp_torch.methods.fast import build_pigp_fast
 from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp
@@ -99,6 +103,10 @@ register(
     MethodSpec("xopt-ucb-travel", build_xopt_ucb, "gp", {"max_travel_distances": TRAVEL_FRACTION})
 )
 register(MethodSpec("xopt-pigp", build_xopt_pigp, "gp"))
+# ARES-EA (linac, screen): the published recipes (pigp_torch.methods.ares)
+register(MethodSpec("published-bo", build_published_bo, "gp", machine="ares-ea"))
+register(MethodSpec("published-nm", build_published_nm, "direct", machine="ares-ea"))
+register(MethodSpec("ares-physics", build_ares_physics, "gp", machine="ares-ea"))
 
 __all__ = [
     "BO_DEFAULTS",

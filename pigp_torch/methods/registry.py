@@ -85,6 +85,8 @@ class MethodSpec:
         fixed: keyword arguments of ``forwards_to`` that the builder sets itself (not options).
         offline_options: builder options that need a benchmark context (an archive of machine
             readings); run files may not give them.
+        machine: the task the method is built for (``None``: any machine with bounds; e.g.
+            ``"ares-ea"``: it reads that machine's target or fixed start).
     """
 
     name: str
@@ -97,6 +99,7 @@ class MethodSpec:
     forwards_to: tuple[type, ...] = ()
     fixed: tuple[str, ...] = ()
     offline_options: tuple[str, ...] = ()
+    machine: str | None = None
 
     def build(self, ctx: RunContext):
         """A fresh optimizer for the run described by ``ctx``."""

@@ -4,7 +4,8 @@ For random boxes, starts, noise levels and seeds, every proposal of every method
 inside the bounds; a method with a trust box (``last_info["trust_lower"/"trust_upper"]``)
 proposes inside it; a step limit (``travel_limit`` of ``pigp-physics``, ``max_travel_distances``
 of the Xopt methods) holds from the last told point. A newly registered method is covered
-without editing this file.
+without editing this file. A method built for one task (``MethodSpec.machine``, e.g. the ARES-EA
+linac's) is checked the same way on that task's simulated machine (its tuning trials 0–49).
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def _needs_skip(name: str) -> str | None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(METHODS))
+@pytest.mark.parametrize("name", sorted(n for n in METHODS if METHODS[n].machine is None))
 @settings(max_examples=4, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])  # fmt: skip
 @given(problem=problems(), seed=st.integers(0, 1000))
@@ -117,3 +118,48 @@ def test_every_method_proposes_finite_settings_in_bounds_and_limits(name, proble
             assert bool(((x - last).abs() <= xopt_travel * width * (1 + 1e-9)).all())
         opt.tell(x, f(x))
         last = x
+
+
+ARES_METHODS = sorted(n for n in METHODS if METHODS[n].machine == "ares-ea")
+HAS_CHEETAH = importlib.util.find_spec("cheetah") is not None
+
+
+def test_every_method_names_a_known_task():
+    assert {METHODS[n].machine for n in METHODS} <= {None, "ares-ea"}
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_CHEETAH, reason="cheetah-accelerator is not installed")
+@pytest.mark.parametrize("name", ARES_METHODS)
+@settings(max_examples=2, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])  # fmt: skip
+@given(trial=st.integers(0, 49), seed=st.integers(0, 1000))
+def test_every_ares_method_proposes_finite_settings_in_bounds(name, trial, seed):
+    """On an ARES-EA tuning trial (0–49): every proposal finite, inside the machine's bounds and
+    inside a trust box the method reports."""
+    from pigp_torch.machine.ares import AresMachine
+    from pigp_torch.simulation.ares import load_trials
+
+    machine = AresMachine(load_trials()[trial], seed=seed)
+    bounds = machine.bounds.to(DT)
+    ctx = RunContext(machine=machine, prior=None, seed=seed, maximize=machine.maximize,
+                     noise=None)  # fmt: skip
+    spec = METHODS[name]
+    names = spec.option_names() | set(spec.options)
+    opt = spec.with_options(**{k: v for k, v in CHEAP.items() if k in names}).build(ctx)
+    x = machine.get().to(DT)
+    for _ in range(6):
+        machine.set(x)
+        y = float(machine.read())
+        obs = getattr(machine, "last_observables", None)
+        if "observables" in inspect.signature(opt.tell).parameters:
+            opt.tell(x, y, observables=obs)
+        else:
+            opt.tell(x, y)
+        x = opt.ask()
+        assert x.shape == (bounds.shape[1],) and x.dtype == DT
+        assert bool(torch.isfinite(x).all())
+        assert bool(((x >= bounds[0]) & (x <= bounds[1])).all())
+        info = getattr(opt, "last_info", {})
+        if "trust_lower" in info:
+            assert bool(((x >= info["trust_lower"]) & (x <= info["trust_upper"])).all())

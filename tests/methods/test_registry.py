@@ -30,6 +30,7 @@ def test_every_method_name_is_known_to_the_benchmark():
     names = {"pigp", "pigp-zero-mean", "pigp-physics", "pigp-physics-box"}
     names |= {"pigp-fast", "ml2", "nelder-mead", "rcds", "xopt-ucb", "xopt-ucb-travel"}
     names |= {"xopt-pigp"}
+    names |= {"published-bo", "published-nm", "ares-physics"}  # the ARES-EA linac's methods
     assert set(METHODS) == names
     assert BENCHMARK_METHODS is METHODS  # one registry, no second copy
     assert {"pigp-zero-mean", "pigp-physics-box"}.isdisjoint(run_file_methods())

@@ -1,0 +1,270 @@
+r"""The ARES-EA benchmark as published: trials × methods, the beam at every step, the scores.
+
+One run = one trial (its incoming beam and misalignments, unknown to the method) and one method,
+on an :class:`~pigp_torch.machine.ares.AresMachine` reading the method's objective
+(:func:`~pigp_torch.methods.ares.ares_objective_for`). Step 0 measures the start setting
+[10, −10, 0, 10, 0]; steps 1 … ``steps − 1`` measure the method's asks; then the knobs are set back
+to the method's best measured setting and the beam is measured once more (row ``step = steps``).
+
+Per row: the trial, the method, the step, the four beam numbers READ on the screen (m; noisy when
+the screen has noise), ``mae`` = their mean absolute error to the target (m), and ``mae_true`` =
+the same for the noise-free beam at that setting (equal to ``mae`` without noise). Scores use
+``mae_true``:
+
+* final MAE: at the set-back row; best MAE: the smallest over steps ``0 … steps − 1``;
+* steps to a threshold (40 µm, 20 µm): the first step whose MAE is at or below it (the start is
+  step 0), ``inf`` when none; and the share of trials that reach it.
+
+Each score is summarized per method by the median and the interquartile range over trials.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+
+from pigp_torch.machine.ares import AresMachine
+from pigp_torch.methods import METHODS, MethodSpec, RunContext, resolve_methods
+from pigp_torch.methods.ares import ares_objective_for
+from pigp_torch.simulation.ares import OBSERVABLE_NAMES, AresSegment, AresTrial
+
+#: MAE thresholds of the published comparison (m).
+THRESHOLDS_M: tuple[float, ...] = (40e-6, 20e-6)
+#: Columns of the per-step table.
+STEP_COLUMNS: tuple[str, ...] = ("trial", "method", "step", *OBSERVABLE_NAMES, "mae", "mae_true")
+#: The recipes run when no method is named (the product's default ARES method first, if any).
+DEFAULT_ARES_METHODS: tuple[str, ...] = ("ares-physics", "published-bo", "published-nm")
+
+
+def default_ares_methods() -> list[str]:
+    """The registered methods of :data:`DEFAULT_ARES_METHODS`."""
+    return [m for m in DEFAULT_ARES_METHODS if m in METHODS]
+
+
+def _tell(opt, x, y: float, observables: torch.Tensor) -> None:
+    if getattr(opt, "uses_observables", False):
+        opt.tell(x, y, observables=observables)
+    else:
+        opt.tell(x, y)
+
+
+def run_ares_trial(
+    trial: AresTrial,
+    method: str | MethodSpec,
+    *,
+    steps: int = 150,
+    noise: float = 0.0,
+    seed: int = 0,
+    segment: AresSegment | None = None,
+) -> pd.DataFrame:
+    r"""One trial tuned by one method: ``steps + 1`` rows of :data:`STEP_COLUMNS` (module
+    docstring).
+
+    Args:
+        trial: the trial.
+        method: a registered name or a :class:`MethodSpec`.
+        steps: measurements of the run, the start included (default 150).
+        noise: screen noise standard deviation (m) on each of the four numbers (default 0).
+        seed: seed of the method and of the screen noise.
+        segment: a shared :class:`AresSegment` (default: a new one).
+
+    Raises:
+        ValueError: ``steps < 1``.
+    """
+    if int(steps) < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    (spec,) = resolve_methods([method])
+    machine = AresMachine(
+        trial, objective=ares_objective_for(spec.name), noise=noise, seed=seed, segment=segment
+    )
+    ctx = RunContext(
+        machine=machine,
+        seed=seed,
+        noise=float(noise) if noise > 0 else None,
+        archive_size=0,
+        maximize=machine.maximize,
+    )
+    opt = spec.build(ctx)
+    rows = []
+
+    def record(step: int) -> None:
+        obs = machine.last_observables
+        true = machine.true_observables(machine.get())
+        rows.append(
+            [
+                trial.index,
+                spec.name,
+                step,
+                *obs.tolist(),
+                float(machine.mae(obs)),
+                float(machine.mae(true)),
+            ]
+        )
+
+    for step in range(int(steps)):
+        if step > 0:
+            machine.set(opt.ask())
+        x = machine.get()
+        y = machine.read()
+        _tell(opt, x, y, machine.last_observables)
+        record(step)
+    x_best, _ = opt.best()
+    machine.set(x_best)
+    machine.read()
+    record(int(steps))
+    return pd.DataFrame(rows, columns=list(STEP_COLUMNS))
+
+
+def _job(args) -> pd.DataFrame:
+    trial, method, steps, noise, seed = args
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    df = run_ares_trial(trial, method, steps=steps, noise=noise, seed=seed)
+    df.attrs["seconds"] = time.perf_counter() - t0
+    return df
+
+
+def run_ares_benchmark(
+    trials: Sequence[AresTrial],
+    methods: Sequence[str],
+    *,
+    steps: int = 150,
+    noise: float = 0.0,
+    seed: int = 0,
+    workers: int = 1,
+    progress: Callable[[str], None] | None = None,
+) -> pd.DataFrame:
+    r"""Every trial × method (:func:`run_ares_trial`, the method's seed = ``seed`` + the trial's
+    number); the concatenated per-step table, sorted by method, trial and step.
+
+    Args:
+        workers: processes (1: in this process).
+        progress: called with one line per finished run.
+    """
+    names = [s.name for s in resolve_methods(list(methods))]
+    jobs = [(t, m, int(steps), float(noise), int(seed) + t.index) for t in trials for m in names]
+    frames = []
+
+    def report(df: pd.DataFrame) -> None:
+        frames.append(df)
+        if progress is not None:
+            last = df.iloc[-1]
+            hit = df.loc[df["step"] < steps, "mae_true"]
+            progress(
+                f"trial {int(last['trial'])} {last['method']}: final MAE "
+                f"{last['mae_true'] * 1e6:.1f} um, best {hit.min() * 1e6:.1f} um "
+                f"({df.attrs.get('seconds', float('nan')):.1f} s) "
+                f"[{len(frames)}/{len(jobs)}]"
+            )
+
+    if int(workers) <= 1:
+        for job in jobs:
+            report(_job(job))
+    else:
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=int(workers)) as pool:
+            futures = [pool.submit(_job, job) for job in jobs]
+            for fut in as_completed(futures):
+                report(fut.result())
+    table = pd.concat(frames, ignore_index=True)
+    return table.sort_values(["method", "trial", "step"], kind="stable").reset_index(drop=True)
+
+
+def _steps_to(mae: np.ndarray, threshold: float) -> float:
+    hit = np.nonzero(mae <= threshold)[0]
+    return float(hit[0]) if hit.size else math.inf
+
+
+def score_runs(table: pd.DataFrame) -> pd.DataFrame:
+    r"""Per (method, trial): ``final_mae``, ``best_mae`` (m), ``steps_to_40um``,
+    ``steps_to_20um`` (``inf``: never) from a per-step table (module docstring)."""
+    out = []
+    for (method, trial), g in table.groupby(["method", "trial"], sort=True):
+        g = g.sort_values("step")
+        steps = int(g["step"].max())
+        run = g.loc[g["step"] < steps, "mae_true"].to_numpy()
+        row = {
+            "method": method,
+            "trial": int(trial),
+            "final_mae": float(g.loc[g["step"] == steps, "mae_true"].iloc[0]),
+            "best_mae": float(run.min()),
+        }
+        for thr in THRESHOLDS_M:
+            row[f"steps_to_{round(thr * 1e6)}um"] = _steps_to(run, thr)
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def summarize_scores(scores: pd.DataFrame) -> pd.DataFrame:
+    r"""Per method: median, 25 % and 75 % quantiles of final and best MAE (µm) and of the steps
+    to 40 / 20 µm (``inf`` counts as not reached), and the share of trials reaching each."""
+    rows = []
+    for method, g in scores.groupby("method", sort=False):
+        row = {"method": method, "trials": len(g)}
+        for col in ("final_mae", "best_mae"):
+            q = np.quantile(g[col].to_numpy() * 1e6, [0.25, 0.5, 0.75])
+            row.update({f"{col}_um_q25": q[0], f"{col}_um_median": q[1], f"{col}_um_q75": q[2]})
+        for thr in THRESHOLDS_M:
+            col = f"steps_to_{round(thr * 1e6)}um"
+            v = g[col].to_numpy()
+            q = np.quantile(v, [0.25, 0.5, 0.75], method="lower")
+            row.update({f"{col}_q25": q[0], f"{col}_median": q[1], f"{col}_q75": q[2]})
+            row[f"share_{round(thr * 1e6)}um"] = float(np.isfinite(v).mean())
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def format_summary(summary: pd.DataFrame) -> str:
+    """The summary as a text table (MAE in µm, steps as median [IQR])."""
+    lines = [
+        f"{'method':<16} {'trials':>6}  {'final MAE um':>24}  {'best MAE um':>24}  "
+        f"{'steps to 40 um':>18} {'share':>5}  {'steps to 20 um':>18} {'share':>5}"
+    ]
+
+    def iqr(r, c, fmt, width):
+        text = f"{r[c + '_median']:{fmt}} [{r[c + '_q25']:{fmt}}, {r[c + '_q75']:{fmt}}]"
+        return text.rjust(width)
+
+    for _, r in summary.iterrows():
+        lines.append(
+            f"{r['method']:<16} {int(r['trials']):>6}  {iqr(r, 'final_mae_um', '.1f', 24)}  "
+            f"{iqr(r, 'best_mae_um', '.1f', 24)}  {iqr(r, 'steps_to_40um', '.0f', 18)} "
+            f"{r['share_40um']:>5.0%}  {iqr(r, 'steps_to_20um', '.0f', 18)} "
+            f"{r['share_20um']:>5.0%}"
+        )
+    return "\n".join(lines)
+
+
+def plot_mae_vs_step(table: pd.DataFrame, path) -> None:
+    """Median MAE (µm, noise-free) against step with the interquartile band, one line per method;
+    left: the MAE at each step, right: the best so far."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    run = table[table["step"] < table.groupby(["method", "trial"])["step"].transform("max")]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for method, g in run.groupby("method", sort=False):
+        wide = g.pivot(index="step", columns="trial", values="mae_true") * 1e6
+        for ax, data in ((axes[0], wide), (axes[1], wide.cummin())):
+            q = np.nanquantile(data.to_numpy(), [0.25, 0.5, 0.75], axis=1)
+            (line,) = ax.plot(data.index, q[1], label=f"{method} ({wide.shape[1]} trials)")
+            ax.fill_between(data.index, q[0], q[2], color=line.get_color(), alpha=0.2)
+    for ax, title in zip(axes, ("MAE at each step", "best MAE so far"), strict=True):
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_title(title)
+        for thr in THRESHOLDS_M:
+            ax.axhline(thr * 1e6, color="grey", lw=0.7, ls=":")
+    axes[0].set_ylabel("MAE to target (µm), median and IQR")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

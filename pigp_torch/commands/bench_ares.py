@@ -1,0 +1,115 @@
+"""``pigp bench ares``: the ARES-EA linac task as published (trials × methods, beam per step)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in m, got {text!r}") from None
+    if not (0.0 <= value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 m, got {text!r}")
+    return value
+
+
+def cmd_bench_ares(args) -> int:
+    import torch
+
+    from pigp_torch.benchmark.ares import (
+        default_ares_methods,
+        format_summary,
+        plot_mae_vs_step,
+        run_ares_benchmark,
+        score_runs,
+        summarize_scores,
+    )
+    from pigp_torch.simulation.ares import load_trials, parse_trial_ids
+
+    torch.set_num_threads(1)
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    trials = load_trials(args.trials)
+    if args.trial_ids is None:
+        ids = sorted(trials)
+    else:
+        ids = parse_trial_ids(args.trial_ids)
+        missing = [i for i in ids if i not in trials]
+        if missing:
+            raise ValueError(f"trial ids not in {args.trials or 'the shipped trials'}: {missing}")
+    methods = args.methods or default_ares_methods()
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(line: str) -> None:
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
+
+    table = run_ares_benchmark(
+        [trials[i] for i in ids],
+        methods,
+        steps=args.steps,
+        noise=args.noise,
+        seed=args.seed,
+        workers=args.workers,
+        progress=progress,
+    )
+    table.to_csv(out / "steps.csv", index=False)
+    scores = score_runs(table)
+    scores.to_csv(out / "scores.csv", index=False)
+    summary = summarize_scores(scores)
+    summary.to_csv(out / "summary.csv", index=False)
+    plot_mae_vs_step(table, out / "mae_vs_step.png")
+    print(
+        f"ARES-EA: {len(ids)} trials, {args.steps} steps, screen noise "
+        f"{args.noise * 1e6:g} um; MAE noise-free, after setting back to the best"
+    )
+    print(format_summary(summary))
+    print(f"wrote {out / 'steps.csv'}, scores.csv, summary.csv, mae_vs_step.png")
+    return 0
+
+
+def register(sub, bench) -> None:
+    """Add ``pigp bench ares`` to the ``pigp bench`` sub-parsers."""
+    b = bench.add_parser(
+        "ares",
+        help="the ARES-EA linac task (DESY): methods on published trials, beam per step",
+        description="Tune the beam on the ARES-EA screen to each trial's target (mu_x, sigma_x, "
+        "mu_y, sigma_y) with each method, starting at [10, -10, 0, 10, 0]; write DIR/steps.csv "
+        "(trial, method, step, the four numbers read (m), mae = their mean absolute error to "
+        "the target (m), mae_true = the same noise-free), per-run scores, a summary (median "
+        "and IQR of final and best MAE in um, steps to 40 and 20 um and the share reaching "
+        "them) and a figure of median MAE against step.",
+    )
+    b.add_argument(
+        "--trials",
+        default=None,
+        help="trials file in the published format (YAML, integer keys; default: the shipped "
+        "trials 0-149)",
+    )
+    b.add_argument(
+        "--trial-ids", default=None, help="trial keys, e.g. 50-149 or 0,3,7-9 (default: all)"
+    )
+    b.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        help="registered method names (default: the product's ARES method and the published "
+        "recipes published-bo, published-nm)",
+    )
+    b.add_argument("--steps", type=int, default=150, help="measurements per run (default 150)")
+    b.add_argument(
+        "--noise",
+        type=_nonnegative_float,
+        default=0.0,
+        help="screen noise: standard deviation of each beam number in m (default 0)",
+    )
+    b.add_argument("--seed", type=int, default=0, help="base seed (run seed = seed + trial)")
+    b.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    b.add_argument("-o", "--output", required=True, help="output folder")
+    b.add_argument("--quiet", action="store_true", help="no per-run progress lines")
+    b.set_defaults(func=cmd_bench_ares)

@@ -1,0 +1,152 @@
+r"""Methods of the ARES-EA task (DESY linac, five magnets, one screen).
+
+* ``published-bo``: the published BO recipe (:class:`~pigp_torch.optimizers.ares_published.
+  PublishedAresBO`): unidirectional quadrupoles, knobs scaled to [−3, 3], the start and 4 uniform
+  samples in a ±0.3 box around it, then SingleTaskGP + EI + ``optimize_acqf`` in the ±0.3 box
+  around the last sample; maximizes the machine's ``"reward"`` objective.
+* ``published-nm``: the published Nelder–Mead recipe on the project's
+  :class:`~pigp_torch.optimizers.NelderMead`: bidirectional quadrupoles, classical coefficients,
+  initial simplex steps of a quarter of each knob's range (±0.5 on knobs scaled to [−1, 1]), from
+  the same start; minimizes the machine's ``"distance"`` objective (MAE, 100× off the screen). The
+  published run minimized the step-to-step change of that distance (a "differential" reward); here
+  the distance itself is minimized, which makes the objective stationary.
+
+:data:`ARES_METHOD_OBJECTIVE` says which machine objective (:data:`~pigp_torch.machine.ares.
+ARES_OBJECTIVES`) each method reads; a method not listed reads ``"reward"``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.methods.registry import RunContext
+from pigp_torch.optimizers import NelderMead
+from pigp_torch.optimizers.ares_published import PublishedAresBO
+from pigp_torch.simulation.ares import START_SETTING, knob_bounds
+
+#: The machine objective each ARES method reads (``read()`` of
+#: :class:`~pigp_torch.machine.ares.AresMachine`).
+ARES_METHOD_OBJECTIVE: dict[str, str] = {
+    "published-bo": "reward",
+    "published-nm": "distance",
+    "ares-physics": "mae",
+}
+
+
+def ares_objective_for(method: str) -> str:
+    """The machine objective method ``method`` reads (default ``"reward"``)."""
+    return ARES_METHOD_OBJECTIVE.get(method, "reward")
+
+
+def build_published_bo(ctx: RunContext, *, unidirectional: bool = True, **options):
+    """The published BO recipe; ``unidirectional`` restricts the quadrupoles as published
+    (Q1 ≥ 0, Q2 ≤ 0, Q3 ≥ 0) within the machine's bounds."""
+    bounds = ctx.bounds
+    if unidirectional:
+        uni = knob_bounds(unidirectional=True)
+        bounds = torch.stack([torch.maximum(bounds[0], uni[0]), torch.minimum(bounds[1], uni[1])])
+    x0 = torch.tensor(START_SETTING, dtype=DTYPE)
+    return PublishedAresBO(bounds, x0=x0, seed=ctx.seed, maximize=ctx.maximize, **options)
+
+
+def build_published_nm(ctx: RunContext, *, initial_simplex_size: float = 0.25, **options):
+    """The published Nelder–Mead recipe (classical coefficients, a quarter-range simplex)."""
+    options.setdefault("adaptive", False)
+    return NelderMead(
+        ctx.bounds, initial_simplex_size=initial_simplex_size, maximize=ctx.maximize, **options
+    )
+
+
+#: The unknowns ``ares-physics`` fits: the incoming beam's transverse centroid and sizes (the
+#: optics of the segment do not depend on the energy, bunch length or energy spread) and the
+#: eight misalignments.
+ARES_FITTED_INCOMING: tuple[str, ...] = (
+    "mu_x",
+    "mu_xp",
+    "mu_y",
+    "mu_yp",
+    "sigma_x",
+    "sigma_xp",
+    "sigma_y",
+    "sigma_yp",
+)
+
+
+def ares_model_parts(segment=None, lattice=None):
+    r"""The ARES-EA model for :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`:
+    ``(model, center, half_width)``.
+
+    ``model(X, theta)``: ``N x 5`` knobs and ``P = 16`` unknowns (:data:`ARES_FITTED_INCOMING`,
+    then the misalignments q1_x … screen_y, m and rad) -> ``N x 4`` beam on the screen (m); the
+    energy, bunch length and energy spread are held at the middle of their ranges. ``center`` and
+    ``half_width``: the middle and half width of the ranges the trials were drawn from.
+    """
+    from pigp_torch.simulation.ares import INCOMING_NAMES, AresSegment, load_lattice
+
+    lattice = load_lattice() if lattice is None else lattice
+    segment = AresSegment(lattice) if segment is None else segment
+    rng = lattice["incoming_beam_ranges"]
+    lo = torch.tensor(rng["low"], dtype=DTYPE)
+    hi = torch.tensor(rng["high"], dtype=DTYPE)
+    order = list(rng["order"])
+    if order != list(INCOMING_NAMES):
+        raise ValueError(f"lattice incoming-beam order {order} is not {list(INCOMING_NAMES)}")
+    idx = torch.tensor([order.index(n) for n in ARES_FITTED_INCOMING])
+    m_lo, m_hi = lattice["misalignments"]["range_m"]
+    center = torch.cat([(lo + hi)[idx] / 2, torch.full((8,), (m_lo + m_hi) / 2, dtype=DTYPE)])
+    half = torch.cat([(hi - lo)[idx] / 2, torch.full((8,), (m_hi - m_lo) / 2, dtype=DTYPE)])
+    base = (lo + hi) / 2
+
+    def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        inc = base.expand(*theta.shape[:-1], len(INCOMING_NAMES))
+        inc = torch.cat([inc[..., :1], theta[..., :8], inc[..., 9:]], dim=-1)
+        return segment.observe(X, inc, theta[..., 8:], energy=base[0])
+
+    return model, center, half
+
+
+def smooth_mae(target: torch.Tensor, eps: float = 0.5e-6):
+    r"""``N x 4 -> N``: :math:`\tfrac14 \sum_i \sqrt{(o_i - t_i)^2 + \epsilon^2}` (m), the mean
+    absolute error smoothed below :math:`\epsilon` (default 0.5 µm) so that it has gradients."""
+    t = torch.as_tensor(target, dtype=DTYPE)
+
+    def goal(obs: torch.Tensor) -> torch.Tensor:
+        return ((obs - t).square() + eps**2).sqrt().mean(-1)
+
+    return goal
+
+
+def build_ares_physics(
+    ctx: RunContext, *, obs_sd: float | None = None, obs_sd_floor: float = 1e-6, **options
+):
+    r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
+    setting the fitted model's optimum for the machine's target inside a trust region
+    (:class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`).
+
+    Args:
+        obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
+            (``ctx.noise``: the screen noise in m, ``None``: unknown).
+        obs_sd_floor: the smallest noise assumed (default 1 µm).
+        options: :class:`FittedModelOptimizer` options.
+    """
+    from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+
+    machine = ctx.machine
+    target = getattr(machine, "target", None)
+    if target is None:
+        raise ValueError("ares-physics needs an ARES machine with a target beam")
+    model, center, half = ares_model_parts()
+    if obs_sd is None:
+        obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
+    return FittedModelOptimizer(
+        ctx.bounds,
+        model=model,
+        goal=smooth_mae(target),
+        theta_center=center,
+        theta_half_width=half,
+        obs_sd=obs_sd,
+        seed=ctx.seed,
+        maximize=ctx.maximize,
+        **options,
+    )
