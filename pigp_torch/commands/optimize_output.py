@@ -120,6 +120,10 @@ def print_summary(path: Path, out, log=None) -> dict | None:
             f"best y = {best['y']:.6g} {yu} at evaluation {best['step'] + 1}: "
             f"{fmt_knobs(names, best['x'], ku)}",
         )
+    rejected = end.get("rejected_best")
+    if rejected:
+        text = f"y = {rejected['y']:.6g} {yu} at evaluation {rejected['step'] + 1}"
+        say(out, f"best: none (the best reading, {text}, was not confirmed: see the notice)")
     final = end.get("final_knobs")
     if end.get("restored") is False:
         last = end.get("last_setpoint")

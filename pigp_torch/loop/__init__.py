@@ -77,13 +77,16 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    machine ACKNOWLEDGED (``last_setpoint``; ``last_intended`` the last one sent). While
    restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one abandons the restore: reported
    as not restored, with what is known).
-   With ``restore="best"`` the knobs are ramped to the best observed point and it is read
-   again, 3 fresh readings; it is confirmed if their mean is no worse than the best of the
-   run's :math:`N` readings by more than :math:`s(\sqrt{2\ln N} + 4\sqrt{1 + 1/3})`
-   (:math:`s = \sigma`; without it a rough scale from the readings: see
-   :func:`~pigp_torch.loop.readings.confirm_best`). If it does not reproduce, or cannot be
-   reached, the run says so (a warning and a ``notice`` record) and restores the initial knobs
-   instead (``restored_to = "initial (best not confirmed)"``).
+   With ``restore="best"`` the knobs are first ramped to the first evaluation's point
+   (normally the initial knobs) for a control reading that must reproduce its logged value
+   (the machine or its instrument must not have changed), then to the best observed point,
+   read again 3 times; it is confirmed if their mean agrees with the best of the run's
+   :math:`N` readings within :math:`s(\sqrt{2\ln N} + 4\sqrt{1 + 1/3})` in either direction
+   and, with the noise stated, the 3 agree with each other (:math:`s = \sigma`; without it a
+   rough scale from the readings: see :mod:`pigp_torch.loop.readings`). If either check fails,
+   or a point cannot be reached, the run says so (a warning and a ``notice`` record), restores
+   the initial knobs instead (``restored_to = "initial (best not confirmed)"``) and reports no
+   best (the end record's ``best`` is null, ``rejected_best`` names it).
 6. *Signals.* With ``handle_signals`` (default) SIGTERM and SIGHUP (terminal closed, SSH
    dropped) raise :class:`Terminated`, a ``KeyboardInterrupt``, so they take the Ctrl-C path:
    restore, then re-raise; a SIGHUP that was ignored when the run started (``nohup``) stays

@@ -25,7 +25,7 @@ from pigp_torch.loop.moves import (
     setpoints_of,
 )
 from pigp_torch.loop.options import RunOptions
-from pigp_torch.loop.readings import ReadingJudge, confirm_best
+from pigp_torch.loop.readings import CONTROL_READS, ReadingJudge, check_readings, confirm_best
 from pigp_torch.loop.signals import SignalGuard, classify
 from pigp_torch.loop.steps import best_row, knob_columns, logged_initial_knobs, run_steps
 from pigp_torch.machine.base import Machine, check_setting
@@ -269,6 +269,7 @@ def optimize(
         restored_to, final_knobs, restore_error = "none", None, None
         restored, attempts_made, attempt_errors = True, 0, []
         target, confirmation, final_setpoints = None, None, None
+        control, rejected_best = None, None
         if is_machine:
             # initial knobs after any failure; initial / best / none after a completed run
             mode = (
@@ -295,32 +296,58 @@ def optimize(
                 )
 
             if mode == "best":
-                target = torch.tensor(best["x"], dtype=DTYPE)
-                restore_error, attempts_made, attempt_errors = restore_to(
-                    target, "restore best", None
-                )
-                if restore_error is None:
 
-                    def confirm_discard(reason: str, y: float) -> None:
-                        on_discard_at(best["step"])(f"confirming the best point: {reason}", y)
+                def fresh(x, step, what):
+                    def discard(reason: str, y: float) -> None:
+                        on_discard_at(step)(f"{what}: {reason}", y)
 
-                    confirmation = confirm_best(
-                        lambda: checked_read(
-                            objective, target, read_tol, opts.read_retries, opts.retry_interval,
-                            confirm_discard, ReadingJudge(None, objective_range),
-                        )[0],
-                        best["y"], judge, maximize,
-                    )  # fmt: skip
-                    if confirmation.get("abandoned"):  # a second signal: stop here
-                        restore_error = KeyboardInterrupt(confirmation["message"])
-                if restore_error is None and confirmation["confirmed"]:
+                    return lambda: checked_read(
+                        objective, x, read_tol, opts.read_retries, opts.retry_interval, discard,
+                        ReadingJudge(None, objective_range),
+                    )[0]  # fmt: skip
+
+                why, where = None, "the best point"
+                first = rows[0]
+                if first["step"] != best["step"]:
+                    # control: the first evaluation's point, its logged value known; usually the
+                    # initial setpoints, where a rejected best ends anyway
+                    target = torch.tensor([first[n] for n in names], dtype=DTYPE)
+                    where = "the first evaluation's point (control)"
+                    ref = reference if torch.equal(target, x_initial) else None
+                    restore_error, attempts_made, attempt_errors = restore_to(
+                        target, "restore control", ref
+                    )
+                    if restore_error is None:
+                        control = check_readings(
+                            fresh(target, first["step"], "control reading"), first["y"], judge,
+                            CONTROL_READS, selection=False,
+                        )  # fmt: skip
+                        if control.get("abandoned"):
+                            restore_error = KeyboardInterrupt(control["message"])
+                        elif not control["confirmed"]:
+                            why = (
+                                "the machine or its instrument changed during the run: a control "
+                                f"reading at evaluation {first['step'] + 1}'s setting: "
+                                f"{control['message']}"
+                            )
+                if restore_error is None and why is None:
+                    target, where = torch.tensor(best["x"], dtype=DTYPE), "the best point"
+                    restore_error, more, errs = restore_to(target, "restore best", None)
+                    attempts_made, attempt_errors = attempts_made + more, attempt_errors + errs
+                    if restore_error is None:
+                        confirmation = confirm_best(
+                            fresh(target, best["step"], "confirming the best point"),
+                            best["y"], judge, maximize,
+                        )  # fmt: skip
+                        if confirmation.get("abandoned"):  # a second signal: stop here
+                            restore_error = KeyboardInterrupt(confirmation["message"])
+                        elif not confirmation["confirmed"]:
+                            why = f"the best point did not reproduce: {confirmation['message']}"
+                if restore_error is None and why is None:
                     restored_to = "best (confirmed)"
                 elif not isinstance(restore_error, KeyboardInterrupt):
-                    why = (
-                        f"the best point did not reproduce: {confirmation['message']}"
-                        if restore_error is None
-                        else f"the knobs could not be set to the best point: {restore_error}"
-                    )
+                    if why is None:
+                        why = f"the knobs could not be set to {where}: {restore_error}"
                     warnings.warn(f"{why}; restoring the initial knobs instead", stacklevel=2)
                     if log is not None:
                         message = f"{why}; restoring the initial knobs instead"
@@ -331,6 +358,7 @@ def optimize(
                     restore_error, more, errs = restore_to(target, "restore initial", reference)
                     attempts_made, attempt_errors = attempts_made + more, attempt_errors + errs
                     restored_to = "initial (best not confirmed)"
+                    rejected_best, best = best, None
                 else:
                     restored_to = "best"
             elif mode == "initial":
@@ -364,8 +392,12 @@ def optimize(
                     end.update(restore_attempts=attempts_made)
                     if target is not None:
                         end["restore_target"] = target.tolist()
+                    if control is not None:
+                        end["control_reading"] = control
                     if confirmation is not None:
                         end["best_confirmation"] = confirmation
+                    if rejected_best is not None:
+                        end["rejected_best"] = rejected_best
                     if attempt_errors:
                         end["restore_errors"] = attempt_errors
                 if guard.deferred:

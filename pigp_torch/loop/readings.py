@@ -12,8 +12,10 @@ stated). A new reading :math:`y` is
 * *suspicious* if :math:`|y - \tilde y| > k\, s` with the robust scale
   :math:`s = \max(\sigma, 1.4826\,\mathrm{MAD})` and :math:`k` = :data:`OUTLIER_K` (= 5),
   once :math:`n \ge` :data:`MIN_READINGS` (= 5), and with :math:`s = \sigma` from the second
-  reading until then. The rule needs the stated noise: without :math:`\sigma` it does not apply
-  (only finite and in range). A suspicious reading is read again at the same setting and kept
+  reading until then; the run's *first* reading (:math:`n = 0`, nothing to compare it with) is
+  always suspicious. The rule needs the stated noise: without :math:`\sigma` it does not apply
+  (only finite and in range; a run without stated noise reads exactly as before). A suspicious
+  reading is read again at the same setting and kept
   only if the two agree, :math:`|y - y'| \le a\sqrt 2\, \sigma` with :math:`a` =
   :data:`AGREE_A` (= 4); the evaluation's value is then their mean. If they do not agree, the
   re-read is judged afresh: not suspicious, it is the reading and the suspicious one is
@@ -23,8 +25,23 @@ stated). A new reading :math:`y` is
 A reading far from the others is not discarded for being far — a run that optimizes moves its
 readings by many noise sigmas — only for not repeating: a genuine improvement reads the same
 twice, a glitch does not. A glitch that repeats on consecutive readings with the same value
-cannot be told from a real change by readings alone; the physical range is the defence against
-those, and the best point is read again before the knobs are set there (``restore: best``).
+cannot be told from a real change by readings alone; the physical range is one defence against
+those, and with ``restore: best`` two more readings-based checks come before the knobs are
+left at the best point :math:`x^*` (logged value :math:`y^*`):
+
+* **Control reading** (:func:`check_readings` at the reference): the knobs are first ramped
+  to the run's first evaluation :math:`x_0` (usually the initial setpoints, where the restore
+  ends anyway) and :data:`CONTROL_READS` fresh readings are compared with its logged value
+  :math:`y_0`; they must agree within :math:`C s \sqrt{1 + 1/m}` in either direction. If they
+  do not, the machine or its instrument changed during the run (a sustained glitch, a drift):
+  the best is not trusted, the run says so and restores the initial knobs.
+* **Confirmation** (:func:`confirm_best`): at :math:`x^*`, :data:`CONFIRM_READS` fresh
+  readings must agree with :math:`y^*` within :math:`s(\sqrt{2 \ln N} + C\sqrt{1 + 1/m})` in
+  EITHER direction (a best that reads far better than logged is not the point that was
+  measured either), and, with :math:`\sigma` stated, with each other: their range
+  :math:`\max - \min \le a\sqrt 2\,\sigma`. Otherwise the run restores the initial knobs.
+
+A rejected best is not reported as the run's best (the end record names it ``rejected_best``).
 """
 
 from __future__ import annotations
@@ -105,6 +122,8 @@ class ReadingJudge:
 
     def suspicious(self, y: float) -> str | None:
         """Why ``y`` needs a re-read (far from the median of the accepted readings)."""
+        if self.noise is not None and not self.readings:
+            return "the run's first reading: nothing to compare it with yet"
         s = self.scale()
         if s is None:
             return None
@@ -209,41 +228,46 @@ def plausible_reading(
 
 #: Fresh readings taken at the best point before the knobs are left there (``restore: best``).
 CONFIRM_READS = 3
-#: The best point reproduces if the mean of those readings is no worse than the best reading
-#: by more than :math:`s(\sqrt{2\ln N} + C\sqrt{1 + 1/m})`, :math:`C` this.
+#: Fresh readings taken at the reference (the run's first evaluation) before that.
+CONTROL_READS = 1
+#: Agreement of fresh readings with a logged one: :math:`s(\sqrt{2\ln N} + C\sqrt{1 + 1/m})`
+#: (the selection term only for the best), :math:`C` this.
 CONFIRM_C = 4.0
 
 
-def confirm_best(
+def check_readings(
     take: Callable[[], float],
-    y_best: float,
+    y_logged: float,
     judge: ReadingJudge | None,
-    maximize: bool,
-    n: int = CONFIRM_READS,
+    n: int,
+    *,
+    selection: bool,
 ) -> dict:
-    r"""Read the best point again ``n`` times (``take()``, the knobs already there) and say
-    whether it reproduces.
+    r"""Read ``n`` times (``take()``, the knobs already at the point) and say whether the fresh
+    readings reproduce the logged value ``y_logged`` of that point.
 
     With :math:`\bar y` the mean of the :math:`m = n` fresh readings and :math:`N` the run's
-    readings, the point is confirmed if :math:`\bar y` is not worse than the best reading
-    :math:`y^*` by more than
+    readings, they agree if
 
-    .. math:: s \left(\sqrt{2 \ln N} + C \sqrt{1 + 1/m}\right), \qquad C = 4,
+    .. math:: |\bar y - y_\mathrm{logged}| \le s \left(\delta\sqrt{2 \ln N}
+              + C \sqrt{1 + 1/m}\right), \qquad C = 4,
 
-    the first term the upward error to expect of the best of :math:`N` noisy readings (the best
-    reading is read high by its noise), the second the spread of the difference. :math:`s` is
-    the stated noise :math:`\sigma`; without it, the larger of :math:`1.4826\,\mathrm{MAD}` of
-    the run's readings and the standard deviation of the fresh ones (a rough scale: state the
-    noise with ``restore="best"``). A glitch that became the best does not reproduce; a
-    genuine best does.
+    (:math:`\delta = 1` with ``selection``: the best of :math:`N` noisy readings is read high by
+    up to about :math:`\sqrt{2\ln N}\,s`; the second term is the spread of the difference) and,
+    with the noise stated and :math:`m \ge 2`, if their range is at most
+    :math:`a\sqrt2\,\sigma` (:data:`AGREE_A`). :math:`s` is the stated noise :math:`\sigma`;
+    without it, the larger of :math:`1.4826\,\mathrm{MAD}` of the run's readings and the
+    standard deviation of the fresh ones (a rough scale: state the noise with
+    ``restore="best"``).
 
     Returns:
-        ``{"confirmed", "readings", "mean", "best", "tolerance", "message"}``; ``"abandoned"``
-        when a second signal (``KeyboardInterrupt``) stopped it, ``"error"`` when a reading
-        failed (then not confirmed).
+        ``{"confirmed", "readings", "mean", "best", "tolerance", "spread", "message"}``
+        (``"best"`` is ``y_logged``); ``"abandoned"`` when a second signal
+        (``KeyboardInterrupt``) stopped it, ``"error"`` when a reading failed (then not
+        confirmed).
     """
     readings: list[float] = []
-    out = {"confirmed": False, "readings": readings, "best": float(y_best)}
+    out = {"confirmed": False, "readings": readings, "best": float(y_logged)}
     try:
         for _ in range(n):
             readings.append(float(take()))
@@ -254,21 +278,45 @@ def confirm_best(
         out.update(error=f"{type(err).__name__}: {err}", message=f"no reading there ({err})")
         return out
     run = list(judge.readings) if judge is not None else []
-    if judge is not None and judge.noise is not None:
+    stated = judge is not None and judge.noise is not None
+    if stated:
         s = judge.noise
     else:
         s = float(torch.tensor(readings, dtype=torch.float64).std()) if n >= 2 else 0.0
         if len(run) >= 2:
             y = torch.tensor(run, dtype=torch.float64)
             s = max(s, float((y - y.median()).abs().median()) * MAD_TO_SIGMA)
-    selection = math.sqrt(2.0 * math.log(len(run))) if len(run) >= 2 else 0.0
-    tol = s * (selection + CONFIRM_C * math.sqrt(1.0 + 1.0 / n))
-    out["tolerance"] = tol
+    sel = math.sqrt(2.0 * math.log(len(run))) if selection and len(run) >= 2 else 0.0
+    tol = s * (sel + CONFIRM_C * math.sqrt(1.0 + 1.0 / n))
     mean = sum(readings) / n
-    worse = (y_best - mean) if maximize else (mean - y_best)
-    out.update(mean=mean, confirmed=bool(worse <= tol))
+    spread = max(readings) - min(readings)
+    spread_tol = AGREE_A * math.sqrt(2.0) * s if stated and n >= 2 else math.inf
+    off = abs(mean - y_logged)
+    out.update(tolerance=tol, mean=mean, spread=spread)
+    out["confirmed"] = bool(off <= tol and spread <= spread_tol)
     out["message"] = (
-        f"{n} fresh readings there average {mean:.6g} against the best reading {y_best:.6g} "
-        f"(worse by {max(worse, 0.0):.3g}, tolerance {tol:.3g})"
+        f"{n} fresh reading(s) there average {mean:.6g} against the logged {y_logged:.6g} "
+        f"(off by {off:.3g}, tolerance {tol:.3g}"
+        + (f"; spread {spread:.3g}, tolerance {spread_tol:.3g})" if n >= 2 and stated else ")")
     )
+    return out
+
+
+def confirm_best(
+    take: Callable[[], float],
+    y_best: float,
+    judge: ReadingJudge | None,
+    maximize: bool,
+    n: int = CONFIRM_READS,
+) -> dict:
+    r"""Read the best point again ``n`` times (``take()``, the knobs already there) and say
+    whether it reproduces: :func:`check_readings` with the selection term, two-sided (the fresh
+    readings may lie neither far below nor far above the best reading :math:`y^*`) and, with
+    the noise stated, agreeing with each other. ``maximize`` (the optimizer's direction) only
+    words the message. A glitch that became the best does not reproduce; a genuine best does.
+    """
+    out = check_readings(take, y_best, judge, n, selection=True)
+    if "mean" in out:
+        worse = (y_best - out["mean"]) if maximize else (out["mean"] - y_best)
+        out["message"] += "; worse than the best" if worse > 0 else "; better than the best"
     return out

@@ -1,6 +1,7 @@
 """Faults found by an outside audit that the other fault tests do not cover, over real Channel
 Access and judged by the IOC's own put log: a glitch of the objective during the best-point
-confirmation of ``restore: best``.
+confirmation of ``restore: best``; a glitch on the run's first reading; a sustained glitch that
+repeats on its re-reads; confirmation readings far better than the best.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import yaml
 
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
+from pigp_torch.machine.epics import EpicsMachine
 from tests.epics.test_faults_over_ca import (
     fault_at_read,
     final_setpoints,
@@ -44,15 +46,20 @@ def with_optimize(monkeypatch):
 def test_a_glitch_during_the_best_confirmation_restores_the_initial_setpoints(
     ioc, probe, ring, tmp_path, capsys, with_optimize
 ):
-    """Every objective read after the last evaluation returns 1e30 (the glitch starts while the
-    best point is being confirmed): the confirmation readings are discarded as outside the PV's
-    range, the best is NOT confirmed, and the knobs go back exactly to the initial setpoints,
-    every put within max_step; no evaluation is a glitch."""
+    """Every objective read once the knobs go to the best point returns 1e30 (the glitch starts
+    while the best point is being confirmed): the confirmation readings are discarded as
+    outside the PV's range, the best is NOT confirmed, and the knobs go back exactly to the
+    initial setpoints, every put within max_step; no evaluation is a glitch."""
     budget = 5
     probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
     mark = ioc.n_puts()
     config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04, budget=budget)
-    with fault_at_read(budget + 1, lambda: probe.write(ioc.glitch_readings_pv, 50)):
+    path = tmp_path / "run.jsonl"
+
+    def at_the_best() -> bool:
+        return any(r.get("purpose") == "restore best" for r in _records(path))
+
+    with fault_when(at_the_best, lambda: probe.write(ioc.glitch_readings_pv, 50)):
         with pytest.warns(UserWarning, match="restoring the initial knobs instead"):
             code, captured = run(config, capsys)
     assert code == 0, captured.err
@@ -66,6 +73,137 @@ def test_a_glitch_during_the_best_confirmation_restores_the_initial_setpoints(
     assert end["restored_to"] == "initial (best not confirmed)" and end["restored"] is True
     assert final_setpoints(ioc, mark) == start_of(ring).tolist()  # the IOC's last puts
     assert torch.equal(probe.read_many(ioc.setpoint_pvs[:2]), start_of(ring))
+    assert worst_step(ioc, mark) <= 1 + 1e-9
+
+
+@contextlib.contextmanager
+def fault_when(predicate, arm):
+    """``arm()`` runs once, just before the first objective read for which ``predicate()``
+    holds."""
+    real = EpicsMachine.read
+    state = {"armed": False}
+
+    def read(self):
+        if not state["armed"] and predicate():
+            state["armed"] = True
+            arm()
+        return real(self)
+
+    EpicsMachine.read = read
+    try:
+        yield state
+    finally:
+        EpicsMachine.read = real
+
+
+def _glitch(probe, ioc, value: float, reads: int):
+    def arm():
+        probe.write(ioc.glitch_value_pv, value)
+        probe.write(ioc.glitch_readings_pv, reads)
+
+    return arm
+
+
+@pytest.mark.slow  # a 5-evaluation run with ramps and a restore: ~10-20 s on a busy host
+def test_a_glitch_on_the_first_evaluation_is_never_the_best(
+    ioc, probe, ring, tmp_path, capsys, with_optimize
+):
+    """The very first objective read of the run returns 50 mA/min (true value ~1): with the noise
+    stated the first reading is read again and kept only if the two agree; the 50 is discarded
+    (logged), the first evaluation is the mean of the two agreeing reads after it, and the best
+    is confirmed at a genuine point (exit 0, the IOC ends at the best evaluation's setpoints)."""
+    probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
+    mark = ioc.n_puts()
+    config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04, budget=5)
+    with fault_at_read(1, _glitch(probe, ioc, 50.0, 1)):
+        code, captured = run(config, capsys)
+    assert code == 0, captured.err
+    log = read_log(tmp_path / "run.jsonl")
+    assert [(d["step"], d["y"]) for d in log.discarded] == [(0, 50.0)]
+    assert log.evaluations[0]["reads"] == 3 and float(log.Y().max()) < 5.0
+    end = log.last_end
+    assert end["restored_to"] == "best (confirmed)" and end["best"]["y"] < 5.0
+    assert final_setpoints(ioc, mark) == end["best"]["x"]
+    assert worst_step(ioc, mark) <= 1 + 1e-9
+
+
+@pytest.mark.slow  # a 10-evaluation run with ramps and a restore: ~20-30 s each
+@pytest.mark.parametrize("reads", [4, 5])
+def test_a_sustained_glitch_that_repeats_is_never_left_as_the_best(
+    ioc, probe, ring, tmp_path, capsys, with_optimize, reads
+):
+    """From evaluation 9 on, ``reads`` objective reads in a row return 50 mA/min: evaluations 9
+    and 10 each read 50 twice (the outlier re-read agrees), so 50 is the best reading. With
+    restore: best the knobs first go back to the first evaluation's point (the initial
+    setpoints) for a control reading. 5 reads: the control reading is 50 too, far from its
+    logged value — the machine or its instrument changed — so the run says so and stays at the
+    initial setpoints. 4 reads: the control reading agrees, the knobs go to the best point, and
+    its fresh readings (~1) do not reproduce 50 — the initial setpoints are restored. Either
+    way: exit 0, the IOC's last puts are exactly the initial setpoints, no put above max_step,
+    and no best is reported (50 is named as the rejected best)."""
+    budget = 10
+    probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
+    mark = ioc.n_puts()
+    config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04,
+                          budget=budget)  # fmt: skip
+    path = tmp_path / "run.jsonl"
+
+    def at_evaluation_9() -> bool:
+        return sum(r.get("type") == "evaluation" for r in _records(path)) == 8
+
+    why = "the machine or its instrument changed" if reads == 5 else "did not reproduce"
+    with fault_when(at_evaluation_9, _glitch(probe, ioc, 50.0, reads)):
+        with pytest.warns(UserWarning, match=why):
+            code, captured = run(config, capsys)
+    assert code == 0, captured.err
+    log = read_log(path)
+    assert [e["y"] for e in log.evaluations[8:]] == [50.0, 50.0]  # the glitch got in
+    end = log.last_end
+    assert end["best"] is None and end["rejected_best"]["y"] == 50.0
+    assert end["control_reading"]["confirmed"] is (reads == 4)
+    if reads == 4:
+        assert end["best_confirmation"]["confirmed"] is False
+        assert end["best_confirmation"]["mean"] < 5.0
+    else:
+        assert end["control_reading"]["readings"] == [50.0] and "best_confirmation" not in end
+    assert end["restored_to"] == "initial (best not confirmed)" and end["restored"] is True
+    assert "best: none (the best reading, y = 50 mA/min at evaluation 9" in captured.out
+    assert final_setpoints(ioc, mark) == start_of(ring).tolist()
+    assert torch.equal(probe.read_many(ioc.setpoint_pvs[:2]), start_of(ring))
+    assert worst_step(ioc, mark) <= 1 + 1e-9
+
+
+@pytest.mark.slow  # a 5-evaluation run with ramps and a restore: ~10-20 s
+def test_confirmation_readings_far_above_the_best_do_not_confirm_it(
+    ioc, probe, ring, tmp_path, capsys, with_optimize
+):
+    """The three confirmation reads at the best point return 5.0 mA/min, about 100 sigma ABOVE
+    the best reading (~1): better than the best is not a confirmation either (two-sided). The
+    run says so and ends exactly at the initial setpoints (exit 0)."""
+    probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
+    mark = ioc.n_puts()
+    config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04, budget=5)
+    path = tmp_path / "run.jsonl"
+
+    def at_the_best() -> bool:
+        return any(r.get("purpose") == "restore best" for r in _records(path))
+
+    with fault_when(at_the_best, _glitch(probe, ioc, 5.0, 3)):
+        with pytest.warns(UserWarning, match="the best point did not reproduce"):
+            code, captured = run(config, capsys)
+    assert code == 0, captured.err
+    log = read_log(path)
+    end = log.last_end
+    assert float(log.Y().max()) < 2.0
+    # a control reading at the first evaluation's point unless that point is the best
+    assert end.get("control_reading", {}).get("confirmed") is (
+        True if end["rejected_best"]["step"] > 0 else None
+    )
+    assert end["best_confirmation"]["readings"] == [5.0, 5.0, 5.0]
+    assert end["best_confirmation"]["confirmed"] is False
+    assert end["best"] is None and end["rejected_best"]["y"] < 2.0
+    assert end["restored_to"] == "initial (best not confirmed)" and end["restored"] is True
+    assert final_setpoints(ioc, mark) == start_of(ring).tolist()
     assert worst_step(ioc, mark) <= 1 + 1e-9
 
 

@@ -108,14 +108,15 @@ def run(config, capsys):
 
 def test_a_huge_glitch_is_discarded_and_never_the_best(ioc, probe, ring, tmp_path, capsys,
                                                        with_optimize):  # fmt: skip
-    """The objective PV returns 1e30 on two reads in a row (step 2): both are outside the PV's
-    range (LOPR/HOPR 0..100 mA/min), discarded and logged, and the third read is the
-    evaluation; 1e30 is never an evaluation nor the best; with restore: best the best point is
-    read again and confirmed before the knobs are left there; no put exceeds max_step."""
+    """The objective PV returns 1e30 on two reads in a row (step 2; with the noise stated the
+    first evaluation takes two reads): both are outside the PV's range (LOPR/HOPR 0..100
+    mA/min), discarded and logged, and the third read is the evaluation; 1e30 is never an
+    evaluation nor the best; with restore: best the best point is read again and confirmed
+    before the knobs are left there; no put exceeds max_step."""
     probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
     mark = ioc.n_puts()
     config = write_config(tmp_path, ioc, ring, restore="best", objective_noise=0.04)
-    with fault_at_read(3, lambda: probe.write(ioc.glitch_readings_pv, 2)):
+    with fault_at_read(4, lambda: probe.write(ioc.glitch_readings_pv, 2)):
         code, captured = run(config, capsys)
     assert code == 0, captured.err
     log = read_log(tmp_path / "run.jsonl")
@@ -139,7 +140,7 @@ def test_a_glitch_inside_the_range_is_reread_and_discarded(ioc, probe, ring, tmp
     probe.write(ioc.glitch_value_pv, 50.0)
     mark = ioc.n_puts()
     config = write_config(tmp_path, ioc, ring, objective_noise=0.04, budget=6)
-    with fault_at_read(4, lambda: probe.write(ioc.glitch_readings_pv, 1)):
+    with fault_at_read(5, lambda: probe.write(ioc.glitch_readings_pv, 1)):
         code, captured = run(config, capsys)
     assert code == 0, captured.err
     log = read_log(tmp_path / "run.jsonl")
@@ -154,17 +155,21 @@ def test_a_repeated_glitch_is_caught_when_the_best_is_confirmed(ioc, probe, ring
                                                                 capsys, with_optimize):  # fmt: skip
     """A glitch of 50 mA/min that repeats on its re-read cannot be told from a real reading by
     readings alone: it becomes an evaluation. With restore: best the best point is read again
-    at the end, does not reproduce, and the run says so and restores the initial setpoints."""
+    at the end, does not reproduce, and the run says so, restores the initial setpoints and
+    reports no best (the rejected one is named as such)."""
     probe.write_many(ioc.setpoint_pvs[:2], start_of(ring))
     probe.write(ioc.glitch_value_pv, 50.0)
     mark = ioc.n_puts()
     config = write_config(tmp_path, ioc, ring, objective_noise=0.04, budget=5, restore="best")
-    with fault_at_read(4, lambda: probe.write(ioc.glitch_readings_pv, 2)):
+    with fault_at_read(5, lambda: probe.write(ioc.glitch_readings_pv, 2)):
         with pytest.warns(UserWarning, match="the best point did not reproduce"):
             code, captured = run(config, capsys)
     assert code == 0, captured.err
     end = read_log(tmp_path / "run.jsonl").last_end
-    assert end["best"]["y"] == 50.0 and end["best_confirmation"]["confirmed"] is False
+    assert end["best"] is None and end["rejected_best"]["y"] == 50.0
+    assert end["control_reading"]["confirmed"] is True
+    assert end["best_confirmation"]["confirmed"] is False
+    assert "best: none (the best reading, y = 50 mA/min" in captured.out
     assert end["best_confirmation"]["mean"] < 5.0
     assert end["restored_to"] == "initial (best not confirmed)" and end["restored"] is True
     assert final_setpoints(ioc, mark) == start_of(ring).tolist()

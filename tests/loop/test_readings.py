@@ -54,7 +54,7 @@ def test_the_rule_in_numbers():
     j = ReadingJudge(noise=SIGMA, objective_range=(0.0, 10.0))
     assert "outside the objective range" in j.invalid(1e30)
     assert "non-finite" in j.invalid(float("nan")) and j.invalid(5.0) is None
-    assert j.suspicious(100.0) is None  # nothing to compare with yet
+    assert "first reading" in j.suspicious(1.0)  # nothing to compare with yet: re-read
     for y in [1.0, 1.0 + SIGMA, 1.0 - SIGMA, 1.0, 1.0 + 2 * SIGMA]:
         j.accept(y)
     # MAD of these five is sigma, 1.4826 MAD > sigma: s = 1.4826 sigma
@@ -67,14 +67,15 @@ def test_the_rule_in_numbers():
 
 
 def test_a_glitch_is_reread_and_a_real_jump_is_kept():
-    """A one-off 50 (inside the range) is discarded after its re-read; a real jump of 30 sigma
-    that repeats is kept, as the mean of the two readings."""
-    seq = iter([1.0, 1.01, 0.99, 1.0, 1.0, 50.0, 1.005, 1.30, 1.31])
+    """The first reading is read twice (kept as the mean: they agree); a one-off 50 (inside
+    the range) is discarded after its re-read; a real jump of 30 sigma that repeats is kept, as
+    the mean of the two readings."""
+    seq = iter([1.0, 1.0, 1.01, 0.99, 1.0, 1.0, 50.0, 1.005, 1.30, 1.31])
     discarded = []
     j = ReadingJudge(noise=SIGMA, objective_range=(0.0, 100.0))
     ys = [plausible_reading(lambda: next(seq), j, 2, 0.0, lambda r, y: discarded.append(y))
           for _ in range(7)]  # fmt: skip
-    assert ys[:5] == [(1.0, 1), (1.01, 1), (0.99, 1), (1.0, 1), (1.0, 1)]
+    assert ys[:5] == [(1.0, 2), (1.01, 1), (0.99, 1), (1.0, 1), (1.0, 1)]
     assert ys[5] == (1.005, 2) and discarded == [50.0]
     assert ys[6] == (pytest.approx(1.305), 2) and discarded == [50.0]
 
@@ -105,30 +106,85 @@ def test_an_unconfirmed_best_restores_the_initial_knobs(tmp_path):
                  noise=SIGMA)  # fmt: skip
     records = read_log(tmp_path / "r.jsonl")
     end = records.last_end
-    assert end["best"]["y"] == 50.0 and end["best_confirmation"]["confirmed"] is False
+    assert end["rejected_best"]["y"] == 50.0 and end["best"] is None
+    assert end["control_reading"]["confirmed"] is True  # the start point still reads the same
+    assert end["best_confirmation"]["confirmed"] is False
     assert end["restored_to"] == "initial (best not confirmed)" and m.get().tolist() == INITIAL
     from pigp_torch.reporting.report import _notices
 
     notices = _notices(records, records.X(), None, ["qs1", "qs2"])
-    step = end["best"]["step"] + 1
+    step = end["rejected_best"]["step"] + 1
     assert f"evaluation {step}: the best point did not reproduce" in "\n".join(notices)
 
 
+def test_the_first_reading_is_reread_when_the_noise_is_stated():
+    """The run's first reading has nothing to compare with: with sigma stated it is read again
+    and kept only if the two agree; a 50 followed by two agreeing readings of 1.0 is discarded
+    (logged), and never becomes a reading of the run. Without sigma it is read once."""
+    seq = iter([50.0, 1.0, 1.0 + SIGMA])
+    discarded = []
+    j = ReadingJudge(noise=SIGMA, objective_range=(0.0, 100.0))
+    y, reads = plausible_reading(lambda: next(seq), j, 2, 0.0, lambda r, y: discarded.append(y))
+    assert (y, reads) == (pytest.approx(1.0 + SIGMA / 2), 3) and discarded == [50.0]
+    assert j.readings == [pytest.approx(1.0 + SIGMA / 2)]
+    seq = iter([50.0, 1.0])
+    assert plausible_reading(lambda: next(seq), ReadingJudge(), 2, 0.0, print) == (50.0, 1)
+
+
+def test_a_glitch_on_the_first_evaluation_is_never_the_best(tmp_path):
+    """A 50 on the very first read of a run with the noise stated is discarded (logged) and the
+    first evaluation is the mean of the two agreeing reads that follow."""
+    m = Scripted(glitches={1: 50.0})
+    table = optimize(m, Walk(BOUNDS, step=0.05), None, 6, log=tmp_path / "r.jsonl",
+                     noise=SIGMA, objective_range=(0.0, 100.0))  # fmt: skip
+    log = read_log(tmp_path / "r.jsonl")
+    assert [d["y"] for d in log.discarded] == [50.0] and log.discarded[0]["step"] == 0
+    assert float(table["y"].max()) < 5.0 and log.evaluations[0]["reads"] == 3
+
+
 def test_confirm_best_tolerance():
-    """Confirmed iff the mean of 3 fresh readings is no worse than the best of N readings by
-    more than sigma (sqrt(2 ln N) + 4 sqrt(1 + 1/3)); one-sided (better is fine), minimize
-    mirrored."""
+    """Confirmed iff the mean of 3 fresh readings is within sigma (sqrt(2 ln N) + 4 sqrt(1 +
+    1/3)) of the best of N readings in EITHER direction (a best that reads far better than
+    logged is not confirmed either), and the 3 readings agree with each other (range <= 4
+    sqrt(2) sigma); minimize mirrored."""
     j = ReadingJudge(noise=SIGMA)
     tol = 4 * SIGMA * (4 / 3) ** 0.5
     assert confirm_best(lambda: 1.0 - 0.99 * tol, 1.0, j, True)["confirmed"]
     assert not confirm_best(lambda: 1.0 - 1.01 * tol, 1.0, j, True)["confirmed"]
-    assert confirm_best(lambda: 2.0, 1.0, j, True)["confirmed"]
+    assert confirm_best(lambda: 1.0 + 0.99 * tol, 1.0, j, True)["confirmed"]
+    assert not confirm_best(lambda: 1.0 + 1.01 * tol, 1.0, j, True)["confirmed"]
     assert not confirm_best(lambda: 1.0 + 1.01 * tol, 1.0, j, False)["confirmed"]
+    assert not confirm_best(lambda: 1.0 - 1.01 * tol, 1.0, j, False)["confirmed"]
+    # 100 sigma above the best: not a confirmation
+    assert not confirm_best(lambda: 1.0 + 100 * SIGMA, 1.0, j, True)["confirmed"]
+    # the mean agrees but the readings do not agree with each other
+    spread = iter([1.0 - 3 * SIGMA, 1.0, 1.0 + 3 * SIGMA])  # range 6 sigma > 4 sqrt(2) sigma
+    out = confirm_best(lambda: next(spread), 1.0, j, True)
+    assert out["mean"] == pytest.approx(1.0) and not out["confirmed"]
+    assert out["spread"] == pytest.approx(6 * SIGMA)
+    close = iter([1.0 - 2.8 * SIGMA, 1.0, 1.0 + 2.8 * SIGMA])  # range 5.6 sigma < 5.66 sigma
+    assert confirm_best(lambda: next(close), 1.0, j, True)["confirmed"]
     # after N = 100 readings the best is read high by up to sqrt(2 ln N) sigma: allowed for
     j100 = ReadingJudge(noise=SIGMA, readings=[1.0] * 100)
     tol100 = SIGMA * ((2 * math.log(100)) ** 0.5 + 4 * (4 / 3) ** 0.5)
     assert confirm_best(lambda: 1.0 - 0.99 * tol100, 1.0, j100, True)["confirmed"]
     assert not confirm_best(lambda: 1.0 - 1.01 * tol100, 1.0, j100, True)["confirmed"]
+
+
+def test_a_control_reading_that_changed_rejects_the_best(tmp_path):
+    """A sustained glitch: every read from the 8th on returns 50 (its re-reads agree, so it
+    becomes evaluations and the best). With restore='best' the knobs first go to the first
+    evaluation's point (the initial knobs), whose fresh reading (50) is far from its logged
+    value: the run says so, stays at the initial knobs, and reports no best."""
+    m = Scripted(glitches={k: 50.0 for k in range(8, 40)})
+    with pytest.warns(UserWarning, match="the machine or its instrument changed"):
+        optimize(m, Walk(BOUNDS, step=0.05), None, 8, log=tmp_path / "r.jsonl", restore="best",
+                 noise=SIGMA)  # fmt: skip
+    records = read_log(tmp_path / "r.jsonl")
+    end = records.last_end
+    assert end["rejected_best"]["y"] == 50.0 and end["best"] is None
+    assert end["control_reading"]["confirmed"] is False and "best_confirmation" not in end
+    assert end["restored_to"] == "initial (best not confirmed)" and m.get().tolist() == INITIAL
 
 
 def test_a_genuine_optimization_is_not_taken_for_glitches(tmp_path):

@@ -240,8 +240,9 @@ class RunConfig(_Section):
         objective_range: ``[lower, upper]`` physical range of a reading; one outside is
             discarded and read again (``None``: the objective PV's DRVL/DRVH or LOPR/HOPR).
         objective_noise: noise (standard deviation) of one reading, objective units; a reading
-            far from the run's own is then re-read and kept only if it repeats (``None``: the
-            simulated machine's noise, else the prior's; with neither that rule is off).
+            far from the run's own (and the first) is then re-read and kept only if it
+            repeats (``None``: the simulated machine's noise, else the prior's; with neither
+            that rule is off).
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
