@@ -23,7 +23,7 @@ from pigp_torch._utils import DTYPE
 from pigp_torch.methods.registry import RunContext
 from pigp_torch.optimizers import NelderMead
 from pigp_torch.optimizers.ares_published import PublishedAresBO
-from pigp_torch.simulation.ares import START_SETTING, knob_bounds
+from pigp_torch.simulation.ares import INCOMING_NAMES, START_SETTING, knob_bounds
 
 #: The machine objective each ARES method reads (``read()`` of
 #: :class:`~pigp_torch.machine.ares.AresMachine`).
@@ -61,16 +61,7 @@ def build_published_nm(ctx: RunContext, *, initial_simplex_size: float = 0.25, *
 #: The unknowns ``ares-physics`` fits: the incoming beam's transverse centroid and sizes (the
 #: optics of the segment do not depend on the energy, bunch length or energy spread) and the
 #: eight misalignments.
-ARES_FITTED_INCOMING: tuple[str, ...] = (
-    "mu_x",
-    "mu_xp",
-    "mu_y",
-    "mu_yp",
-    "sigma_x",
-    "sigma_xp",
-    "sigma_y",
-    "sigma_yp",
-)
+ARES_FITTED_INCOMING: tuple[str, ...] = INCOMING_NAMES[1:9]
 
 
 def ares_model_parts(segment=None, lattice=None):
