@@ -38,6 +38,12 @@ import torch
 
 from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.archive import machine_archive
+from pigp_torch.benchmark.machines import (
+    _maps_key,
+    build_machine,
+    machine_optimum,
+)
+from pigp_torch.benchmark.scoring import score_run
 from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
@@ -55,58 +61,10 @@ ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
 
-_OPTIMA: dict[tuple, float] = {}
-
-
-def _maps_key(machine_maps) -> bool | tuple[float, float]:
-    """``machine_maps`` as a flag or a pair of factors (see :func:`build_machine`)."""
-    if isinstance(machine_maps, (tuple, list)):
-        a, b = (float(v) for v in machine_maps)
-        if not (a >= 0 and b > 0):
-            raise ValueError(f"loss-map factors must be >= 0 and > 0, got {machine_maps}")
-        return (a, b)
-    return bool(machine_maps)
-
-
-def build_machine(machine_seed: int, ring: RingSpec, machine_maps=True) -> RingCoupling:
-    r"""Machine ``machine_seed`` of ``ring`` with its loss-rate map: ``True`` its own
-    (:func:`machine_loss_map`), ``False`` the model's :math:`(f_\infty, g)`, or a pair of
-    factors ``(a, b)``: :math:`(a f_\infty, b g)` for every machine (a map further off than the
-    protocol's spread, e.g. a new vacuum chamber)."""
-    key = _maps_key(machine_maps)
-    sim = ring.build(int(machine_seed))
-    if key is False:
-        return sim
-    if key is True:
-        own = machine_loss_map(machine_seed, sim.loss_rate_map)
-    else:
-        own = (sim.loss_rate_map[0] * key[0], sim.loss_rate_map[1] * key[1])
-    return ring.build(int(machine_seed), loss_rate_map=own)
-
 
 def run_seed(method: str, machine_seed: int) -> int:
     """Stable 31-bit seed of one run from the method name and the machine seed."""
     return zlib.crc32(f"{method}|{int(machine_seed)}".encode()) & 0x7FFFFFFF
-
-
-def machine_optimum(
-    machine_seed: int,
-    n_starts: int = 8,
-    *,
-    knobs=None,
-    ring: RingSpec | None = None,
-    machine_maps=False,
-) -> float:
-    """:math:`f^*` of machine ``machine_seed`` of ``ring`` (default SPEAR3; ``knobs`` overrides
-    its knob set; with ``machine_maps`` its own loss-rate map) from zero knobs and ``n_starts``
-    Sobol starts of L-BFGS-B (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per
-    process."""
-    spec = as_ring_spec(ring, knobs=knobs)
-    key = (int(machine_seed), int(n_starts), spec, _maps_key(machine_maps))
-    if key not in _OPTIMA:
-        sim = build_machine(key[0], spec, machine_maps)
-        _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
-    return _OPTIMA[key]
 
 
 def model_prior(
@@ -181,25 +139,6 @@ def model_prior(
         provenance=provenance,
     )
     return dataclasses.replace(prior, **fields) if fields else prior
-
-
-def score_run(table: pd.DataFrame, sim: RingCoupling, f_star: float) -> pd.DataFrame:
-    r"""Add ``f_true``, ``best_f_true``, ``f0``, ``f_star``, ``gain_fraction`` to one run's table.
-
-    ``f_true`` is the noise-free loss rate at the logged knobs (rows in step order),
-    ``best_f_true`` its running maximum, ``f0`` the noise-free value with skews off.
-    """
-    X = torch.as_tensor(table[list(sim.knob_names)].to_numpy(), dtype=DTYPE)
-    with torch.no_grad():
-        f = sim.loss_rate(X)
-        f0 = float(sim.loss_rate(torch.zeros(1, sim.dim, dtype=DTYPE))[0])
-    out = table.copy()
-    out["f_true"] = f.numpy()
-    out["best_f_true"] = out["f_true"].cummax()
-    out["f0"] = f0
-    out["f_star"] = float(f_star)
-    out["gain_fraction"] = (out["best_f_true"] - f0) / (float(f_star) - f0)
-    return out
 
 
 def run_one(

@@ -21,6 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.simulation.ring import RingCoupling
 
 RUN_KEYS = ["method", "machine_seed"]
 _NEEDED = ("method", "machine_seed", "step", "f_true", "f0", "f_star", "gain_fraction")
@@ -141,3 +145,22 @@ def summarize(
             row["ask_time_s_p90"] = float(t.quantile(0.9)) if len(t) else float("nan")
         out.append(row)
     return pd.DataFrame(out).set_index("method")
+
+
+def score_run(table: pd.DataFrame, sim: RingCoupling, f_star: float) -> pd.DataFrame:
+    r"""Add ``f_true``, ``best_f_true``, ``f0``, ``f_star``, ``gain_fraction`` to one run's table.
+
+    ``f_true`` is the noise-free loss rate at the logged knobs (rows in step order),
+    ``best_f_true`` its running maximum, ``f0`` the noise-free value with skews off.
+    """
+    X = torch.as_tensor(table[list(sim.knob_names)].to_numpy(), dtype=DTYPE)
+    with torch.no_grad():
+        f = sim.loss_rate(X)
+        f0 = float(sim.loss_rate(torch.zeros(1, sim.dim, dtype=DTYPE))[0])
+    out = table.copy()
+    out["f_true"] = f.numpy()
+    out["best_f_true"] = out["f_true"].cummax()
+    out["f0"] = f0
+    out["f_star"] = float(f_star)
+    out["gain_fraction"] = (out["best_f_true"] - f0) / (float(f_star) - f0)
+    return out

@@ -62,7 +62,8 @@ import torch
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import GuardedMachine, check_setting, max_step_tensor
 from pigp_torch.machine.ca_adapter import CaprotoAdapter, refuse_outside_control_limits
-from pigp_torch.machine.errors import MachineError, ReadbackError, ReadError
+from pigp_torch.machine.epics_reads import ObjectiveReader, StaleReadingError  # noqa: F401
+from pigp_torch.machine.errors import MachineError, ReadbackError
 
 #: Seconds between readback polls while waiting for the knobs to reach their setpoints.
 READBACK_POLL_S = 0.05
@@ -71,11 +72,7 @@ TOLERANCE_REL = 1e-6
 TOLERANCE_ABS = 1e-9
 
 
-class StaleReadingError(ReadError):
-    """The objective PV's timestamp did not advance within ``stale_timeout`` (a frozen PV)."""
-
-
-class EpicsMachine(GuardedMachine):
+class EpicsMachine(ObjectiveReader, GuardedMachine):
     r"""Knobs and objective of a machine controlled over EPICS Channel Access.
 
     See the module docstring for the exact set / read / get behaviour and the default tolerance.
@@ -349,74 +346,6 @@ class EpicsMachine(GuardedMachine):
                     f"{self.settle_time:g} s + {self.timeout:g} s: {detail}"
                 )
             time.sleep(min(READBACK_POLL_S, max(0.0, deadline - time.monotonic())))
-
-    def _fresh_reading(self, info: dict) -> float:
-        """One reading whose timestamp is newer than the previous valid one (polls while not).
-
-        Raises:
-            MachineError: the read failed.
-            StaleReadingError: no newer timestamp within ``stale_timeout``.
-        """
-        deadline = time.monotonic() + self.stale_timeout
-        while True:
-            value, stamp = self._ca.read_timed(self.objective_pv, self.timeout)
-            if self._last_stamp is None or stamp > self._last_stamp or not math.isfinite(value):
-                break
-            if time.monotonic() >= deadline:
-                raise StaleReadingError(
-                    f"{self.objective_pv} has not updated for {self.stale_timeout:g} s "
-                    f"(timestamp {stamp:.6f} not newer than the previous reading's; "
-                    "a frozen PV or a stopped IOC record)"
-                )
-            info["stale_polls"] += 1
-            time.sleep(min(self.stale_poll, max(0.0, deadline - time.monotonic())))
-        if math.isfinite(value):
-            self._last_stamp = stamp
-            info["stamps"].append(stamp)
-            info["values"].append(value)
-        return value
-
-    def _one_reading(self, info: dict) -> float:
-        """One valid, fresh reading of the objective PV, with up to ``read_retries`` retries."""
-        reasons = []
-        for attempt in range(self.read_retries + 1):
-            if attempt > 0 and self.retry_interval > 0:
-                time.sleep(self.retry_interval)
-            try:
-                value = self._fresh_reading(info)
-            except StaleReadingError:
-                self.n_invalid_readings += 1
-                raise
-            except MachineError as err:
-                reasons.append(str(err))
-            else:
-                if math.isfinite(value):
-                    self.n_reads += 1
-                    return value
-                reasons.append(f"non-finite value {value}")
-            self.n_invalid_readings += 1
-        raise ReadError(
-            f"no valid reading of {self.objective_pv} in {self.read_retries + 1} attempts: "
-            + "; ".join(reasons)
-        )
-
-    def read(self) -> float:
-        """Mean of ``n_average`` valid readings of the objective PV.
-
-        Raises:
-            ReadError: a reading was still invalid (NaN/inf, timeout, disconnected) after
-                ``read_retries`` retries.
-            StaleReadingError: the objective PV did not update within ``stale_timeout``.
-        """
-        self._check_open()
-        info: dict = {"stamps": [], "values": [], "stale_polls": 0}
-        self.last_reading = info
-        total = 0.0
-        for k in range(self.n_average):
-            if k > 0 and self.average_interval > 0:
-                time.sleep(self.average_interval)
-            total += self._one_reading(info)
-        return total / self.n_average
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:

@@ -28,8 +28,9 @@ from pigp_torch.testing.ca_env import (
     patched_environ,
     server_environment,
 )
+from pigp_torch.testing.ioc_class import sim_ioc_class
 from pigp_torch.testing.ioc_process import SimIOCProcess, start_sim_ioc
-from pigp_torch.testing.ioc_pvs import SimRingIOC, sim_ioc_class
+from pigp_torch.testing.ioc_pvs import SimRingIOC
 
 __all__ = [
     "READY_MESSAGE",

@@ -1,0 +1,59 @@
+"""The run log and the locks of ``pigp optimize``: the locks to take, the log's folder checked,
+an existing log described, a log to continue read (hash chain verified)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pigp_torch.commands.optimize_output import say
+
+
+def _locks(config, log_path: Path):
+    """The run's locks, not yet taken: the log's, then one per PV prefix (EPICS)."""
+    from pigp_torch.data.runlock import log_lock, machine_locks
+
+    locks = [log_lock(log_path)]
+    pvs = config.pv_names()
+    if pvs:
+        locks += machine_locks(pvs, config.lock_dir)
+    return locks
+
+
+def _check_log_folder(path: Path) -> None:
+    """The run log's folder is (or can be made) a writable folder."""
+    import os
+
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
+    if path.is_dir():
+        raise ValueError(f"the run log {path} is a folder; give a file name")
+
+
+def _existing_log(path: Path) -> str:
+    """What an existing run log at ``path`` holds, in words (for the refusal and the dry run)."""
+    from pigp_torch.data.runlog import read_log
+
+    try:
+        records = read_log(path, warn=False)
+    except (ValueError, OSError) as err:
+        return f"it is not a run log that can be continued ({err})"
+    end = records.last_end
+    how = "ended " + end["status"] if end is not None else "no end record (a crash)"
+    return f"it holds {records.n_evaluations} evaluation(s), {how}"
+
+
+def _read_resumed(path: Path, *, warn_out=None):
+    """The run log to continue, read and its hash chain verified; its warnings (a torn last
+    line, no chain) are printed once, one plain line each, to ``warn_out``."""
+    from pigp_torch.data.runlog import read_log
+
+    records = read_log(path, warn=False)
+    if warn_out is not None:
+        for note in records.warnings:
+            say(warn_out, f"warning: {note}")
+    return records

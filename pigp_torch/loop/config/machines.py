@@ -1,0 +1,142 @@
+r"""The machine sections of a run file: the simulated ring (:class:`SimMachineConfig`) and a
+machine over EPICS Channel Access (:class:`EpicsMachineConfig`), chosen by ``kind``
+(:data:`MachineConfig`); the strict field types every section uses (:data:`Number`,
+:data:`Integer`, :data:`Flag`). The run as a whole: :mod:`pigp_torch.loop.config.schema`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+#: A number in a run file: an int or a float, never a boolean or a string (pydantic strict mode;
+#: ``true`` would otherwise run as 1 and ``"0.5"`` be converted).
+Number = Annotated[float, Strict()]
+#: An integer in a run file: never a boolean, a float or a string.
+Integer = Annotated[int, Strict()]
+#: A yes/no value in a run file: ``true`` or ``false`` only (not 1, not "yes" as a string).
+Flag = Annotated[bool, Strict()]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# ------------------------------------------------------------------------------------ models
+class SimMachineConfig(_Section):
+    r"""The simulated ring: :class:`~pigp_torch.simulation.Spear3Coupling` behind a
+    :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise.
+
+    The configured knobs are the simulator's skew windings (names like ``01G-QSS4``); their bounds
+    must lie within the simulator's range (±30 A).
+
+    Any ring instead of SPEAR3: ``lattice`` names a lattice file (a JSON element table like those
+    in ``pigp_torch/data``, or any file pyAT loads), the configured knobs are then element names
+    of that lattice (``FAM``, ``FAM[n]``, ``#i``) and ``knob_calibration`` gives K1s·L (1/m) per
+    knob unit (:class:`~pigp_torch.simulation.RingCoupling`); the bounds must lie within
+    ``±knob_limit``.
+
+    Attributes:
+        error_seed: error seed of the simulated machine.
+        optics: the SPEAR3 deck, ``"user"`` (default), ``"design"`` or ``"low_emittance"``
+            (without ``lattice``).
+        noise: reading noise standard deviation (objective units, mA/min by default).
+        seed: seed of the noise stream.
+        x_init: knob values the machine starts at (unlisted knobs: 0).
+        lattice: a lattice file (relative paths from the run file's folder); default ``None``:
+            the shipped SPEAR3 deck ``optics``.
+        knob_calibration: with ``lattice``: K1s·L (1/m) per knob unit, one value or
+            ``{knob: value}`` for every knob (required with ``lattice``, refused without).
+        knob_limit: with ``lattice``: the simulator's symmetric knob range (knob units,
+            default 30).
+        loss_map: ``"model"`` (default): the ring's own loss-rate map (SPEAR3's constants);
+            ``"benchmark"``: the map that the benchmark and ``pigp demo`` give machine
+            ``error_seed`` (background and Touschek scale perturbed per seed,
+            :func:`pigp_torch.benchmark.protocol.machine_loss_map`) — the same machine as the
+            demo's "machine 1" for ``error_seed: 1``.
+    """
+
+    kind: Literal["sim"]
+    error_seed: Integer = 1
+    optics: Literal["user", "design", "low_emittance"] = "user"
+    noise: Number = Field(0.04, ge=0.0)
+    seed: Integer = 0
+    x_init: dict[str, Number] | None = None
+    lattice: Path | None = None
+    knob_calibration: Number | dict[str, Number] | None = None
+    knob_limit: Number = Field(30.0, gt=0.0)
+    loss_map: Literal["model", "benchmark"] = "model"
+
+    @field_validator("lattice")
+    @classmethod
+    def _resolve_lattice(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        return _resolve(path, info)
+
+    @model_validator(mode="after")
+    def _lattice_and_calibration(self) -> SimMachineConfig:
+        if self.lattice is None and self.knob_calibration is not None:
+            raise ValueError("knob_calibration goes with lattice (SPEAR3 has its own)")
+        if self.lattice is not None and self.knob_calibration is None:
+            raise ValueError("with a lattice file, give knob_calibration (K1s·L per knob unit)")
+        cal = self.knob_calibration
+        values = cal.values() if isinstance(cal, dict) else [] if cal is None else [cal]
+        if any(not v > 0 for v in values):
+            raise ValueError(f"knob_calibration must be positive, got {cal}")
+        return self
+
+
+class EpicsMachineConfig(_Section):
+    r"""A machine over EPICS Channel Access (:class:`pigp_torch.machine.epics.EpicsMachine`).
+
+    PV names are ``setpoint_pvs[knob]`` (default ``knob + setpoint_suffix``) and
+    ``readback_pvs[knob]`` (default ``knob + readback_suffix``); the objective PV is
+    ``objective.pv``. The timing and averaging fields are passed to the machine. The readback
+    tolerance is ``tolerance`` (knob units) or ``tolerance_fraction`` (of each knob's range);
+    with neither, the machine's default (a millionth of the range: right for a simulated IOC,
+    too tight for a real magnet's noisy readback). ``stale_timeout`` (s, default 10): how long
+    a reading may wait for the objective PV's timestamp to advance. ``protocol``: ``ca``
+    (Channel Access, :class:`~pigp_torch.machine.epics.EpicsMachine`, default) or ``pva``
+    (pvAccess, :class:`~pigp_torch.machine.pva.PvaMachine`, the ``pva`` extra; the client is
+    configured from ``EPICS_PVA_*`` in the environment).
+    """
+
+    kind: Literal["epics"]
+    protocol: Literal["ca", "pva"] = "ca"
+    setpoint_pvs: dict[str, str] | None = None
+    readback_pvs: dict[str, str] | None = None
+    setpoint_suffix: str = ":CurrSetpt"
+    readback_suffix: str = ":Curr1"
+    settle_time: Number = Field(0.5, ge=0.0)
+    tolerance: Number | None = Field(None, gt=0.0)
+    tolerance_fraction: Number | None = Field(None, gt=0.0, lt=1.0)
+    n_average: Integer = Field(1, ge=1)
+    average_interval: Number = Field(0.0, ge=0.0)
+    timeout: Number = Field(2.0, gt=0.0)
+    stale_timeout: Number = Field(10.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _one_tolerance(self) -> EpicsMachineConfig:
+        if self.tolerance is not None and self.tolerance_fraction is not None:
+            raise ValueError("give tolerance (knob units) or tolerance_fraction, not both")
+        return self
+
+
+MachineConfig = Annotated[SimMachineConfig | EpicsMachineConfig, Field(discriminator="kind")]
+
+
+def _resolve(path: Path | None, info: ValidationInfo) -> Path | None:
+    base = (info.context or {}).get("base_dir")
+    if path is None or path.is_absolute() or base is None:
+        return path
+    return Path(os.path.normpath(Path(base) / path))  # "a/../b" -> "b" (plain text, no I/O)

@@ -1,0 +1,90 @@
+r"""Reading the objective PV of an :class:`~pigp_torch.machine.epics.EpicsMachine`: the mean of
+``n_average`` readings, each fresh (a CA timestamp newer than the previous valid reading's, polled
+every ``stale_poll`` s for at most ``stale_timeout`` s) and valid (finite; up to ``read_retries``
+retries ``retry_interval`` s apart). The rules in full: :mod:`pigp_torch.machine.epics`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from pigp_torch.machine.errors import MachineError, ReadError
+
+
+class StaleReadingError(ReadError):
+    """The objective PV's timestamp did not advance within ``stale_timeout`` (a frozen PV)."""
+
+
+class ObjectiveReader:
+    """The objective reads of :class:`~pigp_torch.machine.epics.EpicsMachine` (a mixin: it uses
+    the machine's client ``_ca``, ``objective_pv``, ``timeout``, the read settings, the counters
+    ``n_reads`` / ``n_invalid_readings``, ``_last_stamp`` and ``_check_open``)."""
+
+    def _fresh_reading(self, info: dict) -> float:
+        """One reading whose timestamp is newer than the previous valid one (polls while not).
+
+        Raises:
+            MachineError: the read failed.
+            StaleReadingError: no newer timestamp within ``stale_timeout``.
+        """
+        deadline = time.monotonic() + self.stale_timeout
+        while True:
+            value, stamp = self._ca.read_timed(self.objective_pv, self.timeout)
+            if self._last_stamp is None or stamp > self._last_stamp or not math.isfinite(value):
+                break
+            if time.monotonic() >= deadline:
+                raise StaleReadingError(
+                    f"{self.objective_pv} has not updated for {self.stale_timeout:g} s "
+                    f"(timestamp {stamp:.6f} not newer than the previous reading's; "
+                    "a frozen PV or a stopped IOC record)"
+                )
+            info["stale_polls"] += 1
+            time.sleep(min(self.stale_poll, max(0.0, deadline - time.monotonic())))
+        if math.isfinite(value):
+            self._last_stamp = stamp
+            info["stamps"].append(stamp)
+            info["values"].append(value)
+        return value
+
+    def _one_reading(self, info: dict) -> float:
+        """One valid, fresh reading of the objective PV, with up to ``read_retries`` retries."""
+        reasons = []
+        for attempt in range(self.read_retries + 1):
+            if attempt > 0 and self.retry_interval > 0:
+                time.sleep(self.retry_interval)
+            try:
+                value = self._fresh_reading(info)
+            except StaleReadingError:
+                self.n_invalid_readings += 1
+                raise
+            except MachineError as err:
+                reasons.append(str(err))
+            else:
+                if math.isfinite(value):
+                    self.n_reads += 1
+                    return value
+                reasons.append(f"non-finite value {value}")
+            self.n_invalid_readings += 1
+        raise ReadError(
+            f"no valid reading of {self.objective_pv} in {self.read_retries + 1} attempts: "
+            + "; ".join(reasons)
+        )
+
+    def read(self) -> float:
+        """Mean of ``n_average`` valid readings of the objective PV.
+
+        Raises:
+            ReadError: a reading was still invalid (NaN/inf, timeout, disconnected) after
+                ``read_retries`` retries.
+            StaleReadingError: the objective PV did not update within ``stale_timeout``.
+        """
+        self._check_open()
+        info: dict = {"stamps": [], "values": [], "stale_polls": 0}
+        self.last_reading = info
+        total = 0.0
+        for k in range(self.n_average):
+            if k > 0 and self.average_interval > 0:
+                time.sleep(self.average_interval)
+            total += self._one_reading(info)
+        return total / self.n_average
