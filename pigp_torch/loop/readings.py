@@ -140,6 +140,17 @@ class ReadingJudge:
         return AGREE_A * math.sqrt(2.0) * (self.noise or 0.0)
 
 
+def _why_invalid(y: float, judge: ReadingJudge | None, parts) -> str | None:
+    """Why the reading ``y`` (and the single readings ``parts()`` averaged into it) is invalid,
+    or ``None``; without a judge only a non-finite reading is."""
+    if judge is not None:
+        why = judge.invalid(y)
+        if why is None and parts is not None:
+            why = judge.invalid_parts(parts())
+        return why
+    return None if math.isfinite(y) else f"non-finite reading {y}"
+
+
 def plausible_reading(
     take: Callable[[], float | None],
     judge: ReadingJudge | None,
@@ -192,12 +203,7 @@ def plausible_reading(
             failures += 1
             continue
         y = float(y)
-        if judge is not None:
-            why = judge.invalid(y)
-            if why is None and parts is not None:
-                why = judge.invalid_parts(parts())
-        else:
-            why = None if math.isfinite(y) else f"non-finite reading {y}"
+        why = _why_invalid(y, judge, parts)
         if why is not None:
             if math.isfinite(y):  # NaN/inf are retried quietly, as they always were
                 on_discard(why, y)

@@ -49,6 +49,16 @@ def best_row(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
     return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
 
 
+def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int) -> None:
+    """The start record: the restore target, and the knobs found when they differ from it."""
+    extra = {}
+    if x_found is not None and x_found is not x_initial:
+        extra["found_knobs"] = x_found.tolist()
+    if rb_found is not None:  # the knobs above are setpoints; their readbacks then
+        extra["found_readbacks"] = rb_found.tolist()
+    log.log_start(x_initial, budget=budget, first_step=first, **extra)
+
+
 def run_steps(
     evaluate,
     optimizer,
@@ -73,12 +83,7 @@ def run_steps(
     """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`; appends to ``rows`` as
     it goes."""
     if log is not None:
-        extra = {}
-        if x_found is not None and x_found is not x_initial:
-            extra["found_knobs"] = x_found.tolist()
-        if rb_found is not None:  # the knobs above are setpoints; their readbacks then
-            extra["found_readbacks"] = rb_found.tolist()
-        log.log_start(x_initial, budget=budget, first_step=first, **extra)
+        _log_start(log, x_initial, x_found, rb_found, budget, first)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -112,16 +117,10 @@ def run_steps(
             with guard.held():  # a signal never splits the log record from the table row
                 if log is not None:  # on disk before the optimizer hears of it
                     log.log_evaluation(
-                        step,
-                        x,
-                        y,
-                        reads=reads,
-                        t_set=t_set,
-                        t_read=time.time(),
-                        ask_time_s=ask_time,
-                        eval_time_s=eval_time,
+                        step, x, y, reads=reads, t_set=t_set, t_read=time.time(),
+                        ask_time_s=ask_time, eval_time_s=eval_time,
                         **({"reading": info} if isinstance(info, dict) else {}),
-                    )
+                    )  # fmt: skip
                 rows.append(row)
             t0 = time.perf_counter()
             optimizer.tell(x, y)
