@@ -12,16 +12,7 @@ from pigp_torch.optimizers.nelder_mead import NelderMead
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.optimizers.rcds import RCDS
 
-#: Deprecated (the loop's safety tests still read it): three optimizer classes by their ``name``;
-#: use :data:`pigp_torch.methods.METHODS`.
-OPTIMIZERS = {
-    BayesOpt.name: BayesOpt,
-    NelderMead.name: NelderMead,
-    RCDS.name: RCDS,
-}
-
 __all__ = [
-    "OPTIMIZERS",
     "RCDS",
     "AskTellOptimizer",
     "BOParts",

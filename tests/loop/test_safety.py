@@ -18,9 +18,12 @@ from hypothesis import strategies as st
 from pigp_torch.data.runlog import read_log, replay
 from pigp_torch.loop import RunAborted, Terminated, optimize
 from pigp_torch.machine import GuardedMachine, MachineError, ReadError
-from pigp_torch.optimizers import OPTIMIZERS, NelderMead
+from pigp_torch.optimizers import RCDS, BayesOpt, NelderMead
 from pigp_torch.optimizers.base import AskTellOptimizer
 from tests.loop.problems import BOUNDS, D, bowl
+
+#: The optimizer classes this property test drives, by their ``name``.
+CLASSES = {cls.name: cls for cls in (BayesOpt, NelderMead, RCDS)}
 
 
 class Walk(AskTellOptimizer):
@@ -288,7 +291,7 @@ def build(name, bounds, seed):
             )
             return gp.eval()
 
-        return OPTIMIZERS[name](
+        return CLASSES[name](
             bounds,
             factory,
             step_limit=0.25,
@@ -298,8 +301,8 @@ def build(name, bounds, seed):
             options={"maxiter": 20},
         )
     if name == "rcds":
-        return OPTIMIZERS[name](bounds, noise=0.05)
-    return OPTIMIZERS[name](bounds)
+        return CLASSES[name](bounds, noise=0.05)
+    return CLASSES[name](bounds)
 
 
 @st.composite
@@ -315,7 +318,7 @@ def problems(draw):
     return bounds, frac, bounds[0] + u0 * width, bounds[0] + center * width, noise
 
 
-@pytest.mark.parametrize("name", sorted(OPTIMIZERS))
+@pytest.mark.parametrize("name", sorted(CLASSES))
 @settings(
     max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
 )
