@@ -22,14 +22,14 @@ import numpy as np
 CHILD = r"""
 import json, sys, time
 import torch
-from pigp_torch.benchmark.protocol import NOISE, build_machine, run_seed
+from pigp_torch.benchmark.protocol import NOISE, benchmark_ring, run_seed
 from pigp_torch.methods import METHODS, RunContext
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation.spec import as_ring_spec
 torch.set_default_dtype(torch.float64)
 prior = PhysicsPrior.load("docs/data/prior_spear3_seed0_surrogate.json")
 method, seed, budget = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-sim = build_machine(seed, as_ring_spec(None), True)
+sim = benchmark_ring(seed, as_ring_spec(None), True)
 ctx = RunContext(machine=sim, prior=prior, seed=run_seed(method, seed), noise=NOISE,
                  archive_size=0)
 opt = METHODS[method].build(ctx)

@@ -51,7 +51,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.benchmark import model_prior
-from pigp_torch.benchmark.protocol import build_machine, machine_optimum
+from pigp_torch.benchmark.protocol import benchmark_ring, machine_optimum
 from pigp_torch.models import InverseSqrtPeakModel
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling
@@ -171,7 +171,7 @@ def main(argv=None) -> None:
     maps = not args.model_maps
     rows = []
     for seed in args.seeds:
-        sim: Spear3Coupling = build_machine(seed, SPEAR3, maps)
+        sim: Spear3Coupling = benchmark_ring(seed, SPEAR3, maps)
         if list(sim.knob_names) != list(prior.knob_names):
             raise SystemExit("the prior is for other knobs than the benchmark's (paper13)")
         opt = ensemble_optima([seed], model=sim)

@@ -1,5 +1,5 @@
 r"""The benchmark's machines: machine ``s`` of a ring with its own loss-rate map
-(:func:`build_machine`) and its true optimum :math:`f^*` (:func:`machine_optimum`, cached per
+(:func:`benchmark_ring`) and its true optimum :math:`f^*` (:func:`machine_optimum`, cached per
 process). The protocol that runs methods on them: :mod:`pigp_torch.benchmark.protocol`.
 """
 
@@ -13,7 +13,7 @@ _OPTIMA: dict[tuple, float] = {}
 
 
 def _maps_key(machine_maps) -> bool | tuple[float, float]:
-    """``machine_maps`` as a flag or a pair of factors (see :func:`build_machine`)."""
+    """``machine_maps`` as a flag or a pair of factors (see :func:`benchmark_ring`)."""
     if isinstance(machine_maps, (tuple, list)):
         a, b = (float(v) for v in machine_maps)
         if not (a >= 0 and b > 0):
@@ -22,11 +22,12 @@ def _maps_key(machine_maps) -> bool | tuple[float, float]:
     return bool(machine_maps)
 
 
-def build_machine(machine_seed: int, ring: RingSpec, machine_maps=True) -> RingCoupling:
+def benchmark_ring(machine_seed: int, ring: RingSpec, machine_maps=True) -> RingCoupling:
     r"""Machine ``machine_seed`` of ``ring`` with its loss-rate map: ``True`` its own
     (:func:`machine_loss_map`), ``False`` the model's :math:`(f_\infty, g)`, or a pair of
     factors ``(a, b)``: :math:`(a f_\infty, b g)` for every machine (a map further off than the
-    protocol's spread, e.g. a new vacuum chamber)."""
+    protocol's spread, e.g. a new vacuum chamber). The simulated ring only: the machine of a run
+    file is built by :func:`pigp_torch.loop.run.build_machine`."""
     key = _maps_key(machine_maps)
     sim = ring.build(int(machine_seed))
     if key is False:
@@ -53,6 +54,6 @@ def machine_optimum(
     spec = as_ring_spec(ring, knobs=knobs)
     key = (int(machine_seed), int(n_starts), spec, _maps_key(machine_maps))
     if key not in _OPTIMA:
-        sim = build_machine(key[0], spec, machine_maps)
+        sim = benchmark_ring(key[0], spec, machine_maps)
         _OPTIMA[key] = float(sim.optimum(n_starts=key[1])[1])
     return _OPTIMA[key]

@@ -40,7 +40,7 @@ from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.archive import machine_archive
 from pigp_torch.benchmark.machines import (
     _maps_key,
-    build_machine,
+    benchmark_ring,
     machine_optimum,
 )
 from pigp_torch.benchmark.scoring import score_run
@@ -169,7 +169,7 @@ def run_one(
     """
     spec_ring = as_ring_spec(ring, knobs=knobs)
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
-        sim = build_machine(int(machine_seed), spec_ring, machine_maps)
+        sim = benchmark_ring(int(machine_seed), spec_ring, machine_maps)
         if list(prior.knob_names) != list(sim.knob_names):
             raise ValueError(
                 f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
@@ -261,7 +261,7 @@ def run_benchmark(
         machine_maps: every machine has its own loss-rate map (:func:`machine_loss_map`,
             default); ``False``: the model's constants on every machine; ``(a, b)``: the
             model's background times ``a`` and Touschek scale times ``b`` on every machine
-            (:func:`build_machine`).
+            (:func:`benchmark_ring`).
         prior_source: how the prior is computed when not given (:func:`model_prior`):
             ``"exact"`` (default) or ``"surrogate"`` (the paper's chain).
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask

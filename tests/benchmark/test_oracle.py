@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pigp_torch.benchmark.oracle import ORACLE, oracle_prior
-from pigp_torch.benchmark.protocol import build_machine
+from pigp_torch.benchmark.protocol import benchmark_ring
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import RunContext
 from pigp_torch.simulation.ensemble import ensemble_optima
@@ -18,7 +18,7 @@ from pigp_torch.simulation.spec import SPEAR3
 def test_oracle_prior_is_the_machines_own_peak(tiny_prior):
     """Background, peak height and shape are the machine's (not the model ring's), the shape
     and precision obey B = 2 c Sigma, and the centre prior stays the model's."""
-    sim = build_machine(3, SPEAR3)
+    sim = benchmark_ring(3, SPEAR3)
     ctx = RunContext(machine=SimulatedMachine(sim, noise=0.04, seed=3), prior=tiny_prior, seed=0)
     prior = oracle_prior(ctx)
     opt = ensemble_optima([3], model=sim)

@@ -56,11 +56,11 @@ def test_scores_are_noise_free(tiny_table):
     """f_true equals the machine's loss_rate (its own loss-rate map) at the logged knobs, f0 the
     skews-off value, and gain_fraction the best-so-far formula; y differs from f_true by the
     0.04 noise."""
-    from pigp_torch.benchmark.protocol import build_machine
+    from pigp_torch.benchmark.protocol import benchmark_ring
     from pigp_torch.simulation.spec import SPEAR3
 
     for seed in SEEDS:
-        sim = build_machine(seed, SPEAR3)
+        sim = benchmark_ring(seed, SPEAR3)
         rows = tiny_table[tiny_table["machine_seed"] == seed]
         X = torch.tensor(rows[sim.knob_names].to_numpy(), dtype=torch.float64)
         f = sim.loss_rate(X).detach().numpy()
@@ -158,7 +158,7 @@ def test_a_run_uses_float64_defaults_whatever_the_caller_set(tiny_prior):
 def test_each_machine_has_its_own_loss_rate_map():
     """A machine's map is drawn from its seed (same in every call), within the protocol's spread
     of the model's constants; the prior's model ring keeps the model's."""
-    from pigp_torch.benchmark.protocol import MAP_SPREAD, build_machine, machine_loss_map
+    from pigp_torch.benchmark.protocol import MAP_SPREAD, benchmark_ring, machine_loss_map
     from pigp_torch.simulation import LOSS_RATE_MAP
     from pigp_torch.simulation.spec import SPEAR3
 
@@ -170,14 +170,14 @@ def test_each_machine_has_its_own_loss_rate_map():
     assert (d >= lo).all() and (d <= hi).all() and d.std() > 0.2
     lo, hi = MAP_SPREAD["touschek"]
     assert (e >= lo).all() and (e <= hi).all() and e.std() > 0.1
-    machine = build_machine(1, SPEAR3)
+    machine = benchmark_ring(1, SPEAR3)
     assert machine.loss_rate_map == maps[0]
-    assert build_machine(1, SPEAR3, machine_maps=False).loss_rate_map == LOSS_RATE_MAP
+    assert benchmark_ring(1, SPEAR3, machine_maps=False).loss_rate_map == LOSS_RATE_MAP
     # factors of the model's map, the same for every machine (the mismatch suite's machines)
     for seed in (1, 2):
-        f_inf, g = build_machine(seed, SPEAR3, machine_maps=(1.6, 0.5)).loss_rate_map
+        f_inf, g = benchmark_ring(seed, SPEAR3, machine_maps=(1.6, 0.5)).loss_rate_map
         assert f_inf == pytest.approx(1.6 * LOSS_RATE_MAP[0], rel=1e-12)
         assert g == pytest.approx(0.5 * LOSS_RATE_MAP[1], rel=1e-12)
-    assert build_machine(1, SPEAR3, machine_maps=(0.0, 1.0)).loss_rate_map[0] == 0.0
+    assert benchmark_ring(1, SPEAR3, machine_maps=(0.0, 1.0)).loss_rate_map[0] == 0.0
     with pytest.raises(ValueError, match="loss-map factors"):
-        build_machine(1, SPEAR3, machine_maps=(1.0, 0.0))
+        benchmark_ring(1, SPEAR3, machine_maps=(1.0, 0.0))

@@ -328,7 +328,7 @@ def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
     the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
     import torch
 
-    from pigp_torch.benchmark.protocol import build_machine
+    from pigp_torch.benchmark.protocol import benchmark_ring
     from pigp_torch.simulation import Spear3Coupling
     from pigp_torch.simulation.spec import RingSpec
 
@@ -336,7 +336,7 @@ def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
     assert cli.main(["optimize", "--config", write_config(tmp_path, machine=machine)]) == 0
     assert "error seed 1 with the benchmark's loss-rate map" in capsys.readouterr().out
     log = read_log(tmp_path / "run.jsonl")
-    bench = build_machine(1, RingSpec(knobs=tuple(KNOBS)), True)
+    bench = benchmark_ring(1, RingSpec(knobs=tuple(KNOBS)), True)
     torch.testing.assert_close(log.Y(), bench.loss_rate(log.X()), rtol=1e-9, atol=1e-12)
     own = Spear3Coupling(1, knobs=KNOBS).loss_rate(log.X())
     assert float((log.Y() - own).abs().min()) > 1e-3  # another machine than SPEAR3's map gives
