@@ -2,9 +2,9 @@ r"""L-BFGS-B with less per-evaluation overhead: scipy's compiled routine, driven
 
 :func:`scipy.optimize.minimize` (``method="L-BFGS-B"``) wraps the objective in several layers
 (memoized value/gradient, a scalar-function object with array-API conversions, copies, finite
-checks). With scipy 1.17 those layers cost about 90 µs per evaluation, as much as the model's
-whole negative log posterior at 13 knobs and 100 readings, and the MAP fit evaluates it several
-hundred times per ask. :func:`minimize_lbfgsb` runs the same compiled routine
+checks). Those layers cost about as much per evaluation as the model's whole negative log
+posterior at 13 knobs and 100 readings (measured in docs/results.md), and the MAP fit evaluates it
+several hundred times per ask. :func:`minimize_lbfgsb` runs the same compiled routine
 (``scipy.optimize._lbfgsb.setulb``) with the same inputs, so the iterates, values and
 stopping are bit-identical to :func:`scipy.optimize.minimize`; only the Python around it is
 thinner.
