@@ -74,7 +74,8 @@ def register(sub, bench) -> None:
         metavar="N",
         help="also store the covariance of the optimum and the mean shape of the peak over N "
         "simulated rings with other error seeds (1001...; same knobs and optics as the "
-        "surrogate's data; a few seconds per ring); pigp-physics uses them as its prior on the machine's "
+        "surrogate's data; a few seconds per ring); pigp-physics uses them as its prior on "
+        "the machine's "
         "optimum and as the shape of its physics form; N must exceed the number of knobs "
         "(at least 14 for the 13 SPEAR3 knobs; default 0: none)",
     )

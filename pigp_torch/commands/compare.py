@@ -175,7 +175,8 @@ def register(sub, bench) -> None:
         default=40,
         metavar="N",
         help="model rings (error seeds 1001...) whose optima give pigp-physics its prior on "
-        "where the machine's optimum lies and the mean shape of the peak (a few seconds per ring; 0: "
+        "where the machine's optimum lies and the mean shape of the peak (a few seconds per "
+        "ring; 0: "
         "box prior and the model ring's shape; otherwise more than the knobs, at least 14 for "
         "the 13 SPEAR3 knobs; default 40)",
     )

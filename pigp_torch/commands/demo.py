@@ -63,7 +63,8 @@ def register(sub, bench) -> None:
         default=20,
         metavar="N",
         help="simulated rings whose optima give pigp-physics its prior on where the machine's "
-        "optimum lies and the mean shape of the peak (a few seconds per ring; at least 14, one more than "
+        "optimum lies and the mean shape of the peak (a few seconds per ring; at least 14, one "
+        "more than "
         "the 13 knobs; 0: none; default 20)",
     )
     p.add_argument(
