@@ -11,73 +11,24 @@ anything.
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 
 import pytest
 import torch
-import yaml
 
 import pigp_torch.data.runlog.writer as writer_module
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
+from tests.commands.test_log_faults import DiskFull
 
-KNOBS = ["01G-QSS4", "02G-QSS3"]
-
-
-class DiskFull:
-    """Stands in for ``os`` in the run-log writer: every ``os.write`` after the first ``n``
-    raises ENOSPC; ``on_full`` is called at the first failure."""
-
-    def __init__(self, n: int, on_full=None) -> None:
-        self.n, self.calls, self.on_full = n, 0, on_full
-
-    def write(self, fd, data):
-        self.calls += 1
-        if self.calls > self.n:
-            if self.calls == self.n + 1 and self.on_full is not None:
-                self.on_full()
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return os.write(fd, data)
-
-    def __getattr__(self, name):
-        return getattr(os, name)
+from .ca_runs import KNOBS, bounds_of, start_of, write_config
 
 
 @pytest.fixture(autouse=True)
 def private_locks(tmp_path, monkeypatch):
     """Machine locks in this test's folder (not the host's shared one)."""
     monkeypatch.setenv("PIGP_LOCK_DIR", str(tmp_path / "locks"))
-
-
-def bounds_of(ring) -> torch.Tensor:
-    idx = [list(ring.knob_names).index(n) for n in KNOBS]
-    return ring.bounds[:, idx] / 2
-
-
-def start_of(ring) -> torch.Tensor:
-    """A nonzero start inside the bounds, so that a restore is visible."""
-    return bounds_of(ring)[1] * torch.tensor([0.2, -0.1], dtype=torch.float64)
-
-
-def write_config(tmp_path, ioc, ring, name="run.yaml", **over) -> str:
-    b = bounds_of(ring)
-    data = {
-        "machine": {"kind": "epics", "settle_time": 0.1, "timeout": 1.0, "stale_timeout": 1.0},
-        "knobs": {k: [float(b[0, i]), float(b[1, i])] for i, k in enumerate(KNOBS)},
-        "objective": {"pv": ioc.loss_rate_pv},
-        "method": {"name": "nelder-mead", "options": {"initial_simplex_size": 0.5}},
-        "budget": 6,
-        "max_step": 0.2,
-        "log": "run.jsonl",
-        "retry_interval": 0.05,
-        "restore_interval": 0.1,
-    }
-    data.update(over)
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
 
 
 def setpoints(ioc, probe) -> torch.Tensor:
