@@ -10,10 +10,11 @@ unit the modules import each other without a cycle.
 layer  units
 =====  =========================================================================================
 11     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
-10     ``commands`` (one module per ``pigp`` command), ``badger_plugins`` (Badger's entry point)
+10     ``commands`` (one module per ``pigp`` command; the ring options), ``badger_plugins``
+       (Badger's entry point)
 9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard)
 8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
-7      ``testing`` (the simulated ring as EPICS servers, ring options)
+7      ``testing`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pigp_torch.testing.ringargs import add_ring_arguments
+from pigp_torch.commands.ring_options import add_ring_arguments
 
 
 def seed_list(text: str) -> list[int]:
@@ -85,9 +85,9 @@ def write_comparison(df, out: Path, title: str) -> None:
 
 def cmd_compare(args) -> int:
     from pigp_torch.benchmark import run_benchmark
+    from pigp_torch.commands.ring_options import ring_spec_from_args
     from pigp_torch.simulation.ensemble import check_ensemble_size
     from pigp_torch.simulation.spec import knob_count
-    from pigp_torch.testing.ringargs import ring_spec_from_args
 
     ring = ring_spec_from_args(args)
     check_ensemble_size(args.center_ensemble, knob_count(ring))  # before any ring is computed

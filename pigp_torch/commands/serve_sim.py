@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from pigp_torch.commands.ring_options import add_ring_arguments, ring_spec_from_args
+
 
 def cmd_serve_sim(args) -> int:
     import torch
@@ -11,8 +13,9 @@ def cmd_serve_sim(args) -> int:
     from pigp_torch.testing.ioc import serve, sim_ioc_from_args
 
     torch.set_num_threads(1)
-    print(f"building simulated ring (error seed {args.seed}, knobs {args.knobs})", flush=True)
-    ioc = sim_ioc_from_args(args)
+    ring = ring_spec_from_args(args)
+    print(f"building simulated ring {ring.describe(args.seed)}", flush=True)
+    ioc = sim_ioc_from_args(args, ring)
     print(
         f"clients: EPICS_CA_ADDR_LIST=127.0.0.1:{args.port} EPICS_CA_AUTO_ADDR_LIST=NO; "
         "stop with Ctrl-C",
@@ -40,4 +43,5 @@ def register(sub, bench) -> None:
         "N-th read). SIGTERM and Ctrl-C stop it, also when started in the background.",
     )
     add_ioc_arguments(p)
+    add_ring_arguments(p)
     p.set_defaults(func=cmd_serve_sim)

@@ -38,13 +38,15 @@ LOOPBACK = "127.0.0.1"
 
 
 def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Options of the simulated IOC (``pigp serve-sim``, ``python -m pigp_torch.testing.ioc``)."""
+    """Options of the simulated IOC (``pigp serve-sim``, ``python -m pigp_torch.testing.ioc``)
+    other than the ring: ``--seed --noise --noise-seed --prefix --port --update-period
+    --readback-delay --put-log``. The ring itself is a
+    :class:`~pigp_torch.simulation.spec.RingSpec`: ``pigp serve-sim`` builds it from its ring
+    options (:mod:`pigp_torch.commands.ring_options`), ``python -m pigp_torch.testing.ioc`` reads
+    it as JSON (``--ring``)."""
     p.add_argument(
         "--seed", type=int, default=1, help="error seed of the simulated ring (default 1)"
     )
-    from pigp_torch.testing.ringargs import add_ring_arguments
-
-    add_ring_arguments(p)
     p.add_argument(
         "--noise",
         type=float,

@@ -139,13 +139,18 @@ def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> No
             signal.signal(signal.SIGINT, previous_int)
 
 
-def sim_ioc_from_args(args):
-    """The IOC described by the options of :func:`pigp_torch.testing.add_ioc_arguments`."""
-    from pigp_torch.testing.ringargs import ring_spec_from_args
+def sim_ioc_from_args(args, ring=None):
+    """The IOC described by the options of :func:`pigp_torch.testing.add_ioc_arguments` and the
+    ring ``ring`` (a :class:`~pigp_torch.simulation.spec.RingSpec` or its
+    :meth:`~pigp_torch.simulation.spec.RingSpec.to_dict` form; default: ``args.ring``, that form
+    as JSON text, else SPEAR3 with the 13 knobs of the study)."""
+    import json
 
+    if ring is None and getattr(args, "ring", None):
+        ring = json.loads(args.ring)
     return make_sim_ioc(
         args.seed,
-        ring=ring_spec_from_args(args),
+        ring=ring,
         noise=args.noise,
         noise_seed=args.noise_seed,
         prefix=args.prefix,
@@ -166,6 +171,13 @@ def main(argv=None) -> int:
         "127.0.0.1.",
     )
     add_ioc_arguments(p)
+    p.add_argument(
+        "--ring",
+        default=None,
+        metavar="JSON",
+        help="the simulated ring as the JSON form of a RingSpec (RingSpec.to_dict), e.g. "
+        '\'{"knobs": ["01G-QSS4"]}\' (default: SPEAR3 user optics, the 13 knobs of the study)',
+    )
     args = p.parse_args(argv)
     ioc = sim_ioc_from_args(args)
     # The ring's large, long-lived object graph need not be traversed by the garbage collector,

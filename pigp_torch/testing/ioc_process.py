@@ -215,11 +215,13 @@ def start_sim_ioc(
         TimeoutError: it did not answer within ``startup_timeout``.
     """
     from pigp_torch.simulation.spear3 import knob_names_for
+    from pigp_torch.simulation.spec import RingSpec
 
     names = knob_names_for(knobs)
+    ring = RingSpec(knobs=knobs if isinstance(knobs, str) else tuple(names))
     port = free_port() if port is None else int(port)
     cmd = [sys.executable, "-m", "pigp_torch.testing.ioc", "--seed", str(int(seed))]
-    cmd += ["--knobs", knobs if isinstance(knobs, str) else ",".join(names)]
+    cmd += ["--ring", json.dumps(ring.to_dict())]
     cmd += ["--noise", repr(float(noise)), "--noise-seed", str(int(noise_seed))]
     cmd += ["--prefix", prefix, "--port", str(port)]
     cmd += ["--update-period", repr(float(update_period))]

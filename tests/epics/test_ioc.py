@@ -351,7 +351,7 @@ def test_a_single_winding_is_accepted_by_knobs():
     windings are refused with the simulator's message."""
     import argparse
 
-    from pigp_torch.testing.ringargs import add_ring_arguments, ring_spec_from_args
+    from pigp_torch.commands.ring_options import add_ring_arguments, ring_spec_from_args
 
     parser = add_ring_arguments(argparse.ArgumentParser())
 

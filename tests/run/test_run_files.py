@@ -242,6 +242,35 @@ def test_sim_bounds_outside_the_simulator_range_are_refused():
         build_run(validate_config(sim(knobs={"01G-QSS4": [-40.0, 10.0]})))
 
 
+def test_the_machine_section_is_described_by_a_ring_spec(tmp_path):
+    """A ``kind: sim`` section gives its ring as a RingSpec (SPEAR3 windings and range; a lattice
+    file with the calibration in knob order and the run's unit), and the run's simulator is that
+    spec's machine: same knobs, range and loss rate at a setting as ``spec.build(seed)``."""
+    from pigp_torch.simulation.spec import RingSpec
+
+    config = validate_config(sim(machine={"kind": "sim", "error_seed": 3, "knob_limit": 20.0}))
+    spec = config.machine.ring_spec(config.knob_names, config.knob_unit)
+    assert spec == RingSpec(optics="user", knobs=tuple(KNOBS), knob_limit=20.0)
+    machine = build_run(config).machine
+    ring = spec.build(3)
+    assert machine.knob_names == ring.knob_names == KNOBS
+    assert float(ring.bounds[1, 0]) == 20.0
+    x = torch.tensor([0.004, -0.002], dtype=D)
+    assert torch.equal(machine.sim.sim.loss_rate(x), ring.loss_rate(x))
+
+    lattice = tmp_path / "ring.json"
+    lattice.write_text("{}")
+    section = {"kind": "sim", "lattice": str(lattice), "knob_calibration": {"B": 2.0, "A": 1.0}}
+    config = validate_config(sim(machine=section, knobs={"A": [-1, 1], "B": [-1, 1]}))
+    spec = config.machine.ring_spec(config.knob_names, "mA")
+    assert (spec.lattice, spec.knobs, spec.knob_calibration) == (
+        str(lattice),
+        ("A", "B"),
+        (1.0, 2.0),
+    )
+    assert (spec.knob_limit, spec.knob_units) == (30.0, "mA")
+
+
 def test_x_init_starts_the_sim_and_is_validated():
     """machine.x_init sets the simulated knobs at the start; names and values are checked."""
     m = build_run(validate_config(sim(machine={"kind": "sim", "x_init": {"02G-QSS3": 0.004}})))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import (
     BaseModel,
@@ -19,6 +19,9 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+
+if TYPE_CHECKING:
+    from pigp_torch.simulation.spec import RingSpec
 
 #: A number in a run file: an int or a float, never a boolean or a string (pydantic strict mode;
 #: ``true`` would otherwise run as 1 and ``"0.5"`` be converted).
@@ -36,10 +39,11 @@ class _Section(BaseModel):
 # ------------------------------------------------------------------------------------ models
 class SimMachineConfig(_Section):
     r"""The simulated ring: :class:`~pigp_torch.simulation.Spear3Coupling` behind a
-    :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise.
+    :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise; the ring is
+    described by :meth:`ring_spec` (a :class:`~pigp_torch.simulation.spec.RingSpec`).
 
     The configured knobs are the simulator's skew windings (names like ``01G-QSS4``); their bounds
-    must lie within the simulator's range (±30 A).
+    must lie within the simulator's range (``±knob_limit``, default ±30 A).
 
     Any ring instead of SPEAR3: ``lattice`` names a lattice file (a JSON element table like those
     in ``pigp_torch/data``, or any file pyAT loads), the configured knobs are then element names
@@ -58,8 +62,8 @@ class SimMachineConfig(_Section):
             the shipped SPEAR3 deck ``optics``.
         knob_calibration: with ``lattice``: K1s·L (1/m) per knob unit, one value or
             ``{knob: value}`` for every knob (required with ``lattice``, refused without).
-        knob_limit: with ``lattice``: the simulator's symmetric knob range (knob units,
-            default 30).
+        knob_limit: the simulator's symmetric knob range (knob units, default 30: SPEAR3's
+            ±30 A).
         loss_map: ``"model"`` (default): the ring's own loss-rate map (SPEAR3's constants);
             ``"benchmark"``: the map that the benchmark and ``pigp demo`` give machine
             ``error_seed`` (background and Touschek scale perturbed per seed,
@@ -94,6 +98,41 @@ class SimMachineConfig(_Section):
         if any(not v > 0 for v in values):
             raise ValueError(f"knob_calibration must be positive, got {cal}")
         return self
+
+    def ring_spec(self, knob_names: list[str], knob_unit: str = "A") -> RingSpec:
+        r"""The simulated ring of this section as a :class:`~pigp_torch.simulation.spec.RingSpec`
+        (the one description of a simulated ring; :meth:`RingSpec.build` makes the machine).
+
+        Args:
+            knob_names: the run's knobs, in order: SPEAR3 winding names, or with ``lattice``
+                element names of that lattice.
+            knob_unit: the run's knob unit (the lattice's control unit; SPEAR3's windings are
+                in A whatever the run calls them).
+
+        Returns:
+            ``RingSpec(optics=optics, knobs=knob_names, knob_limit=knob_limit)`` for SPEAR3, or
+            ``RingSpec(lattice, knob_names, calibration, knob_limit, knob_unit)`` with
+            ``knob_calibration`` in knob order. The loss-rate map is left to the ring (the
+            ``benchmark`` map depends on the built ring's own, see
+            :func:`~pigp_torch.loop.run.simulated_ring`).
+
+        Raises:
+            KeyError: ``knob_calibration`` is a mapping without one of ``knob_names``.
+        """
+        from pigp_torch.simulation.spec import RingSpec  # lazily: the simulator imports pyAT
+
+        names = tuple(str(n) for n in knob_names)
+        if self.lattice is None:
+            return RingSpec(optics=self.optics, knobs=names, knob_limit=self.knob_limit)
+        cal = self.knob_calibration
+        cal = tuple(float(cal[n]) for n in names) if isinstance(cal, dict) else float(cal)
+        return RingSpec(
+            lattice=str(self.lattice),
+            knobs=names,
+            knob_calibration=cal,
+            knob_limit=self.knob_limit,
+            knob_units=knob_unit,
+        )
 
 
 class EpicsMachineConfig(_Section):

@@ -64,9 +64,10 @@ def build_optimizer(config: RunConfig):
 
 
 def simulated_ring(config: RunConfig):
-    r"""The simulated ring of a ``kind: sim`` run: the SPEAR3 deck ``optics`` with the run's
-    windings (:class:`~pigp_torch.simulation.Spear3Coupling`), or, with ``machine.lattice``, that
-    lattice file with the run's knobs as element names
+    r"""The simulated ring of a ``kind: sim`` run: ``RingSpec.build(error_seed)`` of the section's
+    :meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec` — the SPEAR3 deck ``optics`` with
+    the run's windings (:class:`~pigp_torch.simulation.Spear3Coupling`), or, with
+    ``machine.lattice``, that lattice file with the run's knobs as element names
     (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
     range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
     loss-rate map that the benchmark gives machine ``error_seed``
@@ -85,26 +86,13 @@ def simulated_ring(config: RunConfig):
 
 
 def _ring(config: RunConfig, loss_rate_map):
-    from pigp_torch.simulation import Spear3Coupling
-    from pigp_torch.simulation.spec import RingSpec
-
-    m, names = config.machine, config.knob_names
-    if m.lattice is None:
-        return Spear3Coupling(
-            m.error_seed, knobs=names, optics=m.optics, loss_rate_map=loss_rate_map
-        )
-    cal = m.knob_calibration
-    cal = tuple(float(cal[n]) for n in names) if isinstance(cal, dict) else float(cal)
-    spec = RingSpec(
-        lattice=str(m.lattice),
-        knobs=tuple(names),
-        knob_calibration=cal,
-        knob_limit=m.knob_limit,
-        knob_units=config.knob_unit,
-    )
+    m = config.machine
+    spec = m.ring_spec(config.knob_names, config.knob_unit)
     try:
         return spec.build(m.error_seed, loss_rate_map=loss_rate_map)
     except (OSError, ValueError, KeyError) as err:
+        if spec.is_spear3:
+            raise
         raise ConfigError(f"machine.lattice {m.lattice}: {err}") from err
 
 

@@ -1,7 +1,10 @@
-"""Command-line options that choose the simulated ring and its knobs (light: no heavy imports).
+r"""Command-line options that choose the simulated ring and its knobs: an adapter from options to
+a :class:`~pigp_torch.simulation.spec.RingSpec` (the one description of a simulated ring; a run
+file's ``machine`` section gives its own with
+:meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec`).
 
-Used by ``pigp generate-data``, ``compare``, ``serve-sim`` and ``bench simulator``;
-:func:`ring_spec_from_args` turns them into a :class:`~pigp_torch.simulation.spec.RingSpec`.
+Used by ``pigp generate-data``, ``compare``, ``serve-sim`` and ``bench simulator``. Light: the
+parser is built without heavy imports (``pigp --help`` answers at once).
 """
 
 from __future__ import annotations
