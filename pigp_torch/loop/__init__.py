@@ -16,7 +16,7 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    ``max_step``), measured from the previous setting sent, *before* ``machine.set`` is called —
    on top of whatever the machine itself checks and of the optimizer's own rules (BayesOpt's trust
    box). A setting that breaks a rule is refused with ``ValueError`` and the run ends as below.
-2. *How a proposal is reached* (``moves``). Everything happens in *setpoint space*: a move
+2. *How a proposal is reached.* Everything happens in *setpoint space*: a move
    starts from the machine's setpoints (``setpoints()``, read from the control system; else its
    ``last_acknowledged`` setting; only a machine with neither, from ``get()``), never from its
    readbacks, which are only checked against the setpoints (a readback offset or a stuck
@@ -25,12 +25,12 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    cut into
    :math:`n = \lceil \max_i |\Delta_i| / (0.99\, m_i) \rceil` equal steps on the segment (all
    inside the convex box; the 1 % margin leaves room for a machine that measures the step from
-   readbacks sitting within their tolerance of the setpoints). With ``moves="ramp"`` every
-   proposal is reached the same way and the objective is read once, after the last step; the
-   optimizer's algorithm is untouched, so Nelder–Mead and RCDS, which have no step limit of their
-   own, respect the machine's limit, and BayesOpt keeps its trust box (which bounds the distance
-   from the best point, not from the last one). With ``moves="set"`` (the default, for
-   compatibility) a proposal is one ``set``, refused if it is too far. ``pigp optimize`` ramps.
+   readbacks sitting within their tolerance of the setpoints). Every proposal is reached the
+   same way (a move within :math:`0.99\, m`, or with no step limit, is one ``set``) and the
+   objective is read once, after the last step; the optimizer's algorithm is untouched, so
+   Nelder–Mead and RCDS, which have no step limit of their own, respect the machine's limit, and
+   BayesOpt keeps its trust box (which bounds the distance from the best point, not from the
+   last one).
 3. *Invalid readings.* A reading that is NaN or infinite, or a read that raises
    :class:`~pigp_torch.machine.errors.ReadError` or ``TimeoutError``, is retried up to
    ``read_retries`` times, ``retry_interval`` seconds apart; then the run aborts with
@@ -107,11 +107,10 @@ knobs were found (``found_knobs``).
 
 from pigp_torch.loop.core import optimize
 from pigp_torch.loop.moves import RAMP_FRACTION, effective_max_step
-from pigp_torch.loop.options import MOVE_MODES, RESTORE_MODES, RunOptions
+from pigp_torch.loop.options import RESTORE_MODES, RunOptions
 from pigp_torch.loop.signals import RunAborted, Terminated
 
 __all__ = [
-    "MOVE_MODES",
     "RAMP_FRACTION",
     "RESTORE_MODES",
     "RunAborted",

@@ -79,7 +79,7 @@ def optimize(
         options: the safety options (:class:`~pigp_torch.loop.options.RunOptions`; default
             ``RunOptions()``).
         **safety: :class:`~pigp_torch.loop.options.RunOptions` fields, over ``options``
-            (``restore="best"``, ``moves="ramp"``, ``max_step=0.1``, ...).
+            (``restore="best"``, ``max_step=0.1``, ...).
 
     Returns:
         a DataFrame with one row per evaluation and columns ``step`` (0..budget-1), one float64

@@ -43,12 +43,11 @@ def move(
     bounds,
     limit,
     *,
-    ramp: bool,
     on_set=None,
     on_ack=None,
     readback_errors: list[str] | None = None,
 ) -> int:
-    r"""Send ``target`` to ``machine``: one checked ``set``, or a checked ramp; returns the sets.
+    r"""Send ``target`` to ``machine`` by a checked ramp; returns the number of sets.
 
     The move starts from the machine's setpoints (:func:`setpoints_of`: what the IOC holds,
     never a readback). Every setting passes :func:`check_setting` (bounds; step from the
@@ -61,7 +60,7 @@ def move(
     """
     target = check_setting(target, bounds)
     previous = setpoints_of(machine)
-    planned = limit * RAMP_FRACTION if ramp and limit is not None else None
+    planned = limit * RAMP_FRACTION if limit is not None else None
     steps = ramp_steps(previous, target, planned)
     for k, x in enumerate(steps, start=1):
         # intermediate points are convex combinations; the clamp only removes round-off
@@ -259,7 +258,7 @@ def restore_knobs(
         readback_errors: list[str] = []
         try:
             move(
-                machine, target, bounds, limit, ramp=True, on_set=on_set, on_ack=on_ack,
+                machine, target, bounds, limit, on_set=on_set, on_ack=on_ack,
                 readback_errors=readback_errors,
             )  # fmt: skip
             verify_readback(machine, target, bounds, readback_tol, reference)

@@ -6,19 +6,17 @@ import math
 from dataclasses import dataclass
 
 RESTORE_MODES = ("initial", "best", "none")
-MOVE_MODES = ("set", "ramp")
 
 
 @dataclass(frozen=True)
 class RunOptions:
     r"""How :func:`~pigp_torch.loop.optimize` treats a machine: the safety rules of
-    :mod:`pigp_torch.loop` (defaults: the safe choices, except ``moves="set"`` for compatibility;
-    ``pigp optimize`` ramps).
+    :mod:`pigp_torch.loop` (defaults: the safe choices). Every proposal is reached by the
+    checked ramp of rule 2 (a move within the step limit, or with no limit, is one ``set``).
 
     Attributes:
         restore: ``"initial"`` (default), ``"best"`` or ``"none"``: where the knobs go at the end
             of a completed run (after a failure always to the initial knobs, unless ``"none"``).
-        moves: ``"set"`` (one ``set`` per proposal) or ``"ramp"`` (ramp to every proposal).
         max_step: a step limit of the loop on top of the machine's ``max_step`` (scalar fraction
             of each knob's half-range or ``d`` absolute, see
             :func:`~pigp_torch._utils.max_step_tensor`), or ``None``.
@@ -44,7 +42,6 @@ class RunOptions:
     """
 
     restore: str = "initial"
-    moves: str = "set"
     max_step: object = None
     read_retries: int = 2
     retry_interval: float = 0.0
@@ -60,8 +57,6 @@ class RunOptions:
     def __post_init__(self) -> None:
         if self.restore not in RESTORE_MODES:
             raise ValueError(f"restore must be one of {RESTORE_MODES}, got {self.restore!r}")
-        if self.moves not in MOVE_MODES:
-            raise ValueError(f"moves must be one of {MOVE_MODES}, got {self.moves!r}")
         if int(self.read_retries) != self.read_retries or self.read_retries < 0:
             raise ValueError(f"read_retries must be an integer >= 0, got {self.read_retries}")
         _finite_nonnegative("retry_interval", self.retry_interval)

@@ -94,13 +94,12 @@ class Run:
 
         return on_discard
 
-    def evaluate(self, x: torch.Tensor, ramp: bool, step: int) -> tuple[float, int]:
-        """Move to ``x`` (a machine: ramped when ``ramp``) and read the objective."""
+    def evaluate(self, x: torch.Tensor, step: int) -> tuple[float, int]:
+        """Move to ``x`` (a machine: by the checked ramp) and read the objective."""
         opts, objective = self.opts, self.objective
         if self.is_machine:
             self.sent["step"], self.sent["purpose"] = step, "evaluation"
-            move(objective, x, self.bounds, self.limit, ramp=ramp, on_set=self.on_set,
-                 on_ack=self.on_ack)  # fmt: skip
+            move(objective, x, self.bounds, self.limit, on_set=self.on_set, on_ack=self.on_ack)
             on_discard = self.on_discard_at(step)
             if not opts.check_readings:
                 return read(
@@ -270,7 +269,6 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
         rows,
         names=run.names,
         label=run.label,
-        moves=run.opts.moves,
         log=run.log,
         x_initial=run.x_initial,
         x_found=run.x_found,

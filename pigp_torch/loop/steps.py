@@ -69,7 +69,6 @@ def run_steps(
     *,
     names,
     label,
-    moves,
     log,
     x_initial,
     x_found,
@@ -106,8 +105,7 @@ def run_steps(
                 for notice in notices:  # the optimizer's own findings, before the move
                     log.write("notice", step=step, time=_utc_now(), **notice)
             t0 = time.perf_counter()
-            # the start point and the first point of a resumed run are always ramped to
-            y, reads = evaluate(x, ramp=(moves == "ramp" or step == first), step=step)
+            y, reads = evaluate(x, step=step)  # every move a checked ramp
             info = reading_info()
             eval_time = time.perf_counter() - t0
             row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}

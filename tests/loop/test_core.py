@@ -126,17 +126,20 @@ def test_restore_initial_when_the_optimizer_or_the_machine_fails():
 
 
 def test_refused_step_restores_through_ramp_within_max_step():
-    """A far start point is ramped to; a refused optimizer step ends in a ramp back to initial."""
+    """A far start point and every proposal farther than the step limit are ramped to; a
+    refused setting (outside the bounds) ends in a ramp back to the initial knobs."""
 
     class Jump(Walk):
         def ask(self):
-            return torch.clamp(self.X[-1] + 0.2, self.bounds[0], self.bounds[1])
+            return self.X[-1] + 0.2  # 0.7, 0.9, then 1.1: outside the bounds
 
     m = BowlMachine(max_step=0.15)  # 0.15 of the half-range 1 = 0.15 per knob per set
-    with pytest.raises(ValueError, match="step too large"):
+    with pytest.raises(ValueError, match="outside bounds"):
         optimize(m, Jump(BOUNDS), [0.5, 0.0], 5)
-    assert m.n_reads == 1
-    assert m.n_sets == 4 + 4  # ramp 0 -> 0.5 in 4 sets; ramp 0.5 -> 0 in 4 sets
+    assert m.n_reads == 3
+    # ramp 0 -> 0.5 in 4 sets (steps <= 0.99 * 0.15), each +0.2 in 2, the refused 1.1 in none,
+    # the restore 0.9 -> 0 in ceil(0.9 / 0.1485) = 7
+    assert m.n_sets == 4 + 2 + 2 + 7
     assert torch.equal(m.get(), torch.zeros(2, dtype=D))
 
 

@@ -16,7 +16,6 @@ from pigp_torch.optimizers import NelderMead
     ("field", "value", "message"),
     [
         ("restore", "somewhere", "restore must be one of"),
-        ("moves", "jump", "moves must be one of"),
         ("read_retries", -1, "read_retries must be an integer >= 0"),
         ("retry_interval", float("nan"), "retry_interval must be finite"),
         ("objective_floor", float("inf"), "objective_floor must be finite or None"),
@@ -32,14 +31,17 @@ def test_bad_options_are_refused_when_made(field, value, message):
 
 def test_defaults_are_the_safe_choices_and_frozen():
     opts = RunOptions()
-    assert (opts.restore, opts.moves, opts.read_retries, opts.restore_attempts) == (
-        "initial",
-        "set",
-        2,
-        3,
-    )
+    assert (opts.restore, opts.read_retries, opts.restore_attempts) == ("initial", 2, 3)
     with pytest.raises(dataclasses.FrozenInstanceError):
         opts.restore = "none"
+
+
+def test_there_is_no_move_mode_to_choose():
+    """Every proposal is reached by the checked ramp: the former ``moves`` option is gone, and
+    giving it is an error, not a silent no-op."""
+    assert "moves" not in {f.name for f in dataclasses.fields(RunOptions)}
+    with pytest.raises(TypeError, match="moves"):
+        RunOptions(moves="set")
 
 
 def test_keywords_override_the_options_object():

@@ -4,6 +4,7 @@ floor, restores verified by readback, signals, and what the run log holds after 
 from __future__ import annotations
 
 import itertools
+import math
 import os
 import signal
 
@@ -194,19 +195,24 @@ def test_the_loop_refuses_settings_a_bare_machine_would_accept():
 
 
 def test_ramp_moves_split_every_proposal_within_max_step():
-    """moves='ramp': Nelder–Mead, which has no step limit, reaches each proposal in steps of at
-    most max_step and is read once per proposal."""
+    """Nelder–Mead, which has no step limit, reaches each proposal in steps of at most
+    0.99 max_step and is read once per proposal; a move within that is exactly one set."""
     m = FaultyMachine(max_step=0.05, x_init=(0.0, 0.0))
-    table = optimize(m, NelderMead(BOUNDS, initial_simplex_size=0.3), None, 12, moves="ramp")
+    table = optimize(m, NelderMead(BOUNDS, initial_simplex_size=0.3), None, 12)
     assert m.n_reads == 12 and len(m.sets) > 12
     path = [torch.zeros(2, dtype=D), *m.sets]  # from x_init
     steps = torch.stack([(b - a).abs() for a, b in itertools.pairwise(path)])
     assert float(steps.max()) <= 0.05 * 0.99 + 1e-12
     assert table.loc[3, ["qs1", "qs2"]].tolist() != [0.0, 0.0]
-    with pytest.raises(ValueError, match="step too large"):  # the same run with single sets
-        optimize(
-            FaultyMachine(max_step=0.05), NelderMead(BOUNDS, initial_simplex_size=0.3), None, 5
-        )
+    wide = FaultyMachine(max_step=1.0, x_init=(0.0, 0.0))  # 1.0 per knob per set
+    table = optimize(wide, NelderMead(BOUNDS, initial_simplex_size=0.3), None, 12)
+    moves = table[["qs1", "qs2"]].diff().abs().max(axis=1).iloc[1:].to_numpy()
+    n_sets = [max(1, math.ceil(float(d) / 0.99)) for d in moves]
+    assert 1 in n_sets and 2 in n_sets  # both kinds of move happen in this run
+    last = float(table[["qs1", "qs2"]].iloc[-1].abs().max())
+    restore = max(1, math.ceil(last / 0.99))  # back to the initial knobs (0, 0)
+    # the start, then ceil(move / (0.99 m)) sets per evaluation, then the restore
+    assert len(wide.sets) == 1 + sum(n_sets) + restore
 
 
 def test_sigterm_takes_the_ctrl_c_path_and_the_handler_is_put_back(tmp_path):
@@ -343,7 +349,7 @@ def test_no_setting_leaves_the_bounds_or_the_step_limit(name, problem, seed):
             lo, hi = opt.last_info["trust_lower"], opt.last_info["trust_upper"]
             boxes.append(bool(((x >= lo) & (x <= hi)).all()))
 
-    table = optimize(m, opt, None, 7, moves="ramp", callback=check_trust_box)
+    table = optimize(m, opt, None, 7, callback=check_trust_box)
     assert len(table) == 7
     S = torch.stack(m.sets)
     assert bool(((S >= bounds[0]) & (S <= bounds[1])).all())
@@ -389,14 +395,14 @@ def test_resume_restores_the_first_starts_knobs_not_where_a_crash_left_them(tmp_
     within the step limit."""
     path = tmp_path / "r.jsonl"
     m = FaultyMachine(max_step=0.1)
-    optimize(m, Walk(BOUNDS), None, 4, moves="ramp", log=path)
+    optimize(m, Walk(BOUNDS), None, 4, log=path)
     lines = path.read_text().splitlines(keepends=True)
     path.write_text("".join(lines[:-1]))  # as if SIGKILLed before the end record
     crashed = read_log(path)
     crash_point = crashed.X()[-1]
     assert crashed.last_end is None and crashed.initial_knobs == INITIAL
     m2 = FaultyMachine(max_step=0.1, x_init=crash_point.tolist())  # the knobs where it stopped
-    optimize(m2, Walk(BOUNDS), None, 6, moves="ramp", log=path, resume=crashed)
+    optimize(m2, Walk(BOUNDS), None, 6, log=path, resume=crashed)
     assert m2.get().tolist() == pytest.approx(INITIAL, abs=1e-12)
     log = read_log(path)
     assert log.starts[-1]["initial_knobs"] == INITIAL
@@ -421,7 +427,7 @@ def test_an_intent_record_precedes_every_set(tmp_path):
             super()._apply(x)
 
     m = Watching(max_step=0.1)
-    optimize(m, Walk(BOUNDS), None, 4, moves="ramp", log=tmp_path / "r.jsonl")
+    optimize(m, Walk(BOUNDS), None, 4, log=tmp_path / "r.jsonl")
     log = read_log(tmp_path / "r.jsonl")
     assert [i["x"] for i in log.intents] == [s.tolist() for s in m.sets] == seen
     assert {i["purpose"] for i in log.intents} == {"evaluation", "restore initial"}
@@ -574,7 +580,7 @@ def test_two_signals_during_the_restore_say_what_is_known(tmp_path):
     m = Signals()
     path = tmp_path / "r.jsonl"
     with pytest.warns(UserWarning, match="could not restore"), pytest.raises(Terminated):
-        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=path, moves="ramp", max_step=0.2)
+        optimize(m, Walk(BOUNDS), [-0.5, -0.5], 10, log=path, max_step=0.2)
     end = read_log(path).last_end
     assert end["restored"] is False and end["deferred_signals"] == ["SIGTERM", "SIGTERM"]
     assert end["last_setpoint"] == end["final_setpoints"] == end["restore_target"] == INITIAL

@@ -228,7 +228,6 @@ class RunSetup:
         c = self.config
         return RunOptions(
             restore=c.restore,
-            moves="ramp",
             read_retries=c.read_retries,
             retry_interval=c.retry_interval,
             objective_floor=c.objective_floor,
