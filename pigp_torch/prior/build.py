@@ -1,4 +1,33 @@
-r"""From a differentiable model of the objective to a :class:`PhysicsPrior`."""
+r"""From a differentiable model of the objective to a :class:`PhysicsPrior`
+(:func:`prior_from_model`).
+
+For a Gaussian peak :math:`f = f_\infty + A \exp(-\tfrac12 \boldsymbol\delta^\top P
+\boldsymbol\delta)`, :math:`\boldsymbol\delta = \mathbf x - \mathbf c`, :math:`g = \log(f -
+f_\infty)` is the quadratic :math:`\log A - \tfrac12 \boldsymbol\delta^\top P \boldsymbol\delta`,
+so :math:`\mathbf x_0 = \mathbf c`, :math:`H = -P` and :math:`\Sigma = P / 2` exactly.
+
+*Check of a searched* :math:`\mathbf x_0`. A knob is *on a bound* when it lies within
+:data:`ON_BOUND_TOL` of its range from a limit and :math:`G = \nabla \log(f - f_\infty)` points
+out of the box there; the other knobs are *free* (index set :math:`F`). :math:`\mathbf x_0` is
+rejected unless
+
+- :math:`e(\mathbf x_0) = f(\mathbf x_0) - f_\infty > 0`, above :data:`BACKGROUND_REL_TOL`
+  :math:`\cdot \max(|f_\infty|, |f(\mathbf x_0)|)` and at least :data:`MIN_EXCESS_FRACTION` of
+  the best sampled excess;
+- :math:`f` is not constant on the samples and :math:`\mathbf x_0`;
+- :math:`H_{FF}` is not zero and its largest eigenvalue is at most
+  :data:`POSITIVE_CURVATURE_TOL` times its largest :math:`|\lambda|` (a mild repair);
+- the Newton step of the free knobs :math:`\sqrt{G_F^\top (-\tilde H_{FF})^{-1} G_F}`
+  (:math:`\tilde H` repaired) is at most :data:`NEWTON_STEP_MAX` correlation lengths.
+
+*Stationarity.* If :math:`\mathbf x_0` is not stationary in all knobs (it lies on a bound, the
+search did not converge, or a non-optimal ``x0`` was given), i.e. the Newton step
+:math:`\sqrt{G^\top (-\tilde H)^{-1} G}` exceeds :data:`GRADIENT_WARN_TOL` correlation lengths,
+a warning is issued: a maximum on a bound is legitimate (the peak may lie beyond the box).
+:math:`G` is kept in ``prior.gradient``: the Gaussian basis function then has a linear term
+:math:`G^\top (\mathbf x - \mathbf x_0)` in its exponent, but a stationary kernel uses only the
+curvature, so the GP ignores it.
+"""
 
 from __future__ import annotations
 
@@ -53,54 +82,16 @@ def prior_from_model(
     :math:`g = \log e`:
 
     1. :math:`\mathbf x_0 = \arg\max_{\mathbf l \le \mathbf x \le \mathbf u} f(\mathbf x)`,
-       unless ``x0`` is given (see *Search* below).
+       unless ``x0`` is given (the search: :func:`~pigp_torch.prior.peak_search.search_peak`;
+       a searched :math:`\mathbf x_0` is checked as the module docstring says, a given one only
+       for :math:`f(\mathbf x_0) > f_\infty` and a finite Hessian).
     2. :math:`G = \nabla g(\mathbf x_0)`, :math:`H = \nabla^2 g(\mathbf x_0)` by autograd
        (:func:`log_excess_hessian`).
-    3. :math:`H` is made negative definite (:func:`repair_negative_definite`, warns if changed).
+    3. :math:`H` is made negative definite (:func:`repair_negative_definite`, warns if changed);
+       a warning if :math:`\mathbf x_0` is not stationary (module docstring).
     4. Precision :math:`\Sigma = -H/2`; amplitude
        :math:`\sigma_f^2 = e(\mathbf x_0)^2 / 12` (variance of a uniform distribution spanning
-       the objective's range) unless given.
-
-    For a Gaussian peak :math:`f = f_\infty + A \exp(-\tfrac12 \boldsymbol\delta^\top P
-    \boldsymbol\delta)`, :math:`\boldsymbol\delta = \mathbf x - \mathbf c`, :math:`g` is the
-    quadratic :math:`\log A - \tfrac12 \boldsymbol\delta^\top P \boldsymbol\delta`, so
-    :math:`\mathbf x_0 = \mathbf c`, :math:`H = -P` and :math:`\Sigma = P / 2` exactly.
-
-    *Search.* ``f`` is evaluated (without gradients, in chunks of :data:`SAMPLE_CHUNK` rows) on
-    the first ``n_starts + n_samples`` points of a scrambled Sobol sequence of the box seeded
-    with ``seed``, and on the rows of ``x_init``. Batched L-BFGS-B (:func:`maximize_from`, in
-    unit-cube coordinates) then starts from the first ``n_starts`` Sobol points, the
-    ``n_sample_starts`` best of the other ``n_samples`` points and every row of ``x_init``. A
-    start with :math:`e > 0` climbs :math:`g = \log e` (same maximizer as :math:`f`, but its
-    gradient stays useful far in the tails of a peak, where that of :math:`f` underflows; the
-    search does not leave :math:`e > 0`); a start with :math:`e \le 0` climbs :math:`f`.
-    The end point with the largest :math:`f` is polished by a search of its own (the joint
-    problem stops when its slowest start does); :math:`\mathbf x_0` is the better of the two.
-    Cost: ``n_starts + n_samples`` (plus the rows of ``x_init``) evaluations of ``f`` without
-    gradients, then those of the L-BFGS-B iterations (each one batched call for all starts).
-
-    *Check of a searched* :math:`\mathbf x_0`. A knob is *on a bound* when it lies within
-    :data:`ON_BOUND_TOL` of its range from a limit and :math:`G` points out of the box there;
-    the other knobs are *free* (index set :math:`F`). :math:`\mathbf x_0` is rejected unless
-
-    - :math:`e(\mathbf x_0) > 0`, above :data:`BACKGROUND_REL_TOL`
-      :math:`\cdot \max(|f_\infty|, |f(\mathbf x_0)|)` and at least
-      :data:`MIN_EXCESS_FRACTION` of the best sampled excess;
-    - :math:`f` is not constant on the samples and :math:`\mathbf x_0`;
-    - :math:`H_{FF}` is not zero and its largest eigenvalue is at most
-      :data:`POSITIVE_CURVATURE_TOL` times its largest :math:`|\lambda|` (a mild repair);
-    - the Newton step of the free knobs :math:`\sqrt{G_F^\top (-\tilde H_{FF})^{-1} G_F}`
-      (:math:`\tilde H` repaired) is at most :data:`NEWTON_STEP_MAX` correlation lengths.
-
-    A given ``x0`` is not checked (only ``f(x0) > f_inf`` and a finite Hessian are required).
-
-    If :math:`\mathbf x_0` is not stationary in all knobs (it lies on a bound, the search did not
-    converge, or a non-optimal ``x0`` was given), i.e. the Newton step
-    :math:`\sqrt{G^\top (-\tilde H)^{-1} G}` exceeds :data:`GRADIENT_WARN_TOL` correlation
-    lengths, a warning is issued: a maximum on a bound is legitimate (the peak may lie beyond
-    the box). :math:`G` is kept in ``prior.gradient``: the Gaussian basis function then has a
-    linear term :math:`G^\top (\mathbf x - \mathbf x_0)` in its exponent, but a stationary
-    kernel uses only the curvature, so the GP ignores it.
+       the objective's range) unless given (a Gaussian peak: :math:`\Sigma = P/2` exactly).
 
     Args:
         f: differentiable callable mapping ``N x d`` float64 knob settings to ``N`` objective
@@ -109,12 +100,10 @@ def prior_from_model(
         f_inf: background level :math:`f_\infty` of ``f`` (prior mean of the GP).
         noise: measurement noise standard deviation :math:`\sigma_n`.
         x0: optional ``d`` expansion point; skips the search and its check.
-        n_starts: Sobol starts of the local search (>= 0).
-        seed: seed of the Sobol sequence of starts and samples.
-        n_samples: further Sobol points at which ``f`` is evaluated to find the peak (>= 0).
-        n_sample_starts: number of the best samples the local search also starts from (>= 0).
-        x_init: optional ``d`` or ``k x d`` extra starts (clipped into the box), e.g. the
-            machine's present setting.
+        n_starts, seed, n_samples, n_sample_starts, x_init: the search's Sobol starts (>= 0,
+            default 16), the seed of its Sobol sequence (0), the further sampled points (>= 0,
+            4096), the number of best samples it also starts from (>= 0, 8), and optional
+            ``d`` or ``k x d`` extra starts, e.g. the machine's present setting.
         amplitude: kernel variance :math:`\sigma_f^2`; default
             :math:`(f(\mathbf x_0) - f_\infty)^2 / 12`.
         knob_names: ``d`` names; default ``["x0", "x1", ...]``.
@@ -126,67 +115,45 @@ def prior_from_model(
         The :class:`PhysicsPrior`.
 
     Raises:
-        ValueError: the searched ``x0`` fails the check above (the message gives the excess at
-            ``x0``, the best sampled excess, :math:`f_\infty`, the Newton step, the curvature
-            and the knobs on a bound); ``f_inf >= f(x0)``; a non-finite Hessian; ``f``
-            non-finite at every start; no start at all; negative ``n_samples`` /
-            ``n_sample_starts``; ``knob_names`` of the wrong length; bad ``bounds``, ``x0`` or
-            ``x_init``; or any invalid prior field.
+        ValueError: the searched ``x0`` fails the check (the message gives what was found and
+            what to do); ``f_inf >= f(x0)``; a non-finite Hessian; no start, or ``f``
+            non-finite at every start; a negative count; ``knob_names`` of the wrong length;
+            bad ``bounds``, ``x0`` or ``x_init``; or any invalid prior field.
     """
     b = check_bounds(bounds)
-    d = b.shape[1]
-    if knob_names is None:
-        knob_names = [f"x{i}" for i in range(d)]
-    knob_names = list(knob_names)
-    if len(knob_names) != d:
-        raise ValueError(f"knob_names has {len(knob_names)} entries but bounds have {d} knobs")
+    knob_names = _knob_names(knob_names, b.shape[1])
     f_inf = float(f_inf)
-
     search = None
     if x0 is None:
         search = search_peak(f, b, f_inf, n_starts, seed, n_samples, n_sample_starts, x_init)
-        x0 = search["x0"]
-        x0_source = "search"
-    else:
-        x0_t = x0 if isinstance(x0, Tensor) else torch.as_tensor(x0, dtype=DTYPE)
-        if x0_t.dim() != 1:
-            raise ValueError(f"x0 must have shape ({d},), got {tuple(x0_t.shape)}")
-        x0 = as_knob_tensor(x0_t, d, name="x0")[0][0]
-        x0_source = "given"
-
-    if search is not None:
         _check_excess(search, f_inf, knob_names)
+        x0 = search["x0"]
+    else:
+        x0 = _given_x0(x0, b.shape[1])
+    H_rep, G, f_x0, build = _curvature_at(f, x0, f_inf, b, search, knob_names, rel_floor)
+    amplitude = (f_x0 - f_inf) ** 2 / 12.0 if amplitude is None else amplitude
+    searched = (n_starts, seed, n_samples, n_sample_starts) if search is not None else None
+    build = {**_build_record(search, searched), **build}
+    return PhysicsPrior(
+        x0=x0, f_x0=f_x0, f_inf=f_inf, precision=-0.5 * H_rep, amplitude=amplitude,
+        noise=noise, knob_names=knob_names, bounds=b, gradient=G,
+        provenance={**(provenance or {}), "build": build},
+    )  # fmt: skip
+
+
+def _curvature_at(f, x0: Tensor, f_inf: float, b: Tensor, search, knob_names, rel_floor):
+    r"""Steps 2 and 3 of :func:`prior_from_model` at ``x0``: :math:`G`, :math:`H` by autograd,
+    the check of a searched ``x0`` (``search`` not ``None``), the negative-definite repair and
+    the stationarity warning. Returns ``(H_repaired, G, f(x0), record)``, ``record`` the
+    repair's and the Newton step's part of the ``"build"`` provenance."""
     H, G, f_x0 = log_excess_hessian(f, x0, f_inf)
     on_bound = _on_bound(x0, G, b)
     if search is not None:
         _check_curvature(search, H, G, on_bound, f_inf, knob_names, rel_floor)
     H_rep, repair_info = repair_negative_definite(H, rel_floor=rel_floor)
     newton_step = _newton_step(H_rep, G)
-    if newton_step > GRADIENT_WARN_TOL:
-        where = (
-            f"knobs {[knob_names[i] for i in on_bound.nonzero().flatten().tolist()]} lie on a "
-            "bound with f rising across it"
-            if on_bound.any()
-            else "x0 may lie on a bound or the search did not converge"
-        )
-        warnings.warn(
-            f"x0 is not a stationary point of log(f - f_inf): the Newton step to the maximum is "
-            f"{newton_step:.3g} correlation lengths (|G| = {G.norm().item():.3g}); {where}. "
-            "The gradient is kept in prior.gradient; the kernel uses only the curvature.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    if amplitude is None:
-        amplitude = (f_x0 - f_inf) ** 2 / 12.0
-
-    searched = search is not None
-    build = {
-        "x0_source": x0_source,
-        "n_starts": n_starts if searched else None,
-        "seed": seed if searched else None,
-        "n_samples": n_samples if searched else None,
-        "n_sample_starts": n_sample_starts if searched else None,
-        "best_sample_excess": search["best_sample_excess"] if searched else None,
+    _warn_if_not_stationary(newton_step, G, on_bound, knob_names)
+    record = {
         "hessian_eigenvalues": repair_info["eigenvalues_before"],
         "repair_n_clipped": repair_info["n_clipped"],
         "repair_relative_change": repair_info["relative_change"],
@@ -194,19 +161,58 @@ def prior_from_model(
         "newton_step": newton_step,
         "knobs_on_bound": [knob_names[i] for i in on_bound.nonzero().flatten().tolist()],
     }
-    prov = dict(provenance or {})
-    prov["build"] = build
-    return PhysicsPrior(
-        x0=x0,
-        f_x0=f_x0,
-        f_inf=f_inf,
-        precision=-0.5 * H_rep,
-        amplitude=amplitude,
-        noise=noise,
-        knob_names=knob_names,
-        bounds=b,
-        gradient=G,
-        provenance=prov,
+    return H_rep, G, f_x0, record
+
+
+def _build_record(search, searched) -> dict:
+    """Where x0 came from, for the ``"build"`` provenance: the search's settings ``searched =
+    (n_starts, seed, n_samples, n_sample_starts)`` (``None``: x0 was given) and its best
+    sampled excess."""
+    n_starts, seed, n_samples, n_sample_starts = searched or (None,) * 4
+    return {
+        "x0_source": "given" if search is None else "search",
+        "n_starts": n_starts,
+        "seed": seed,
+        "n_samples": n_samples,
+        "n_sample_starts": n_sample_starts,
+        "best_sample_excess": None if search is None else search["best_sample_excess"],
+    }
+
+
+def _knob_names(knob_names: Sequence[str] | None, d: int) -> list[str]:
+    """``d`` knob names: the given ones (checked) or ``["x0", "x1", ...]``."""
+    names = [f"x{i}" for i in range(d)] if knob_names is None else list(knob_names)
+    if len(names) != d:
+        raise ValueError(f"knob_names has {len(names)} entries but bounds have {d} knobs")
+    return names
+
+
+def _given_x0(x0, d: int) -> Tensor:
+    """A given expansion point as a ``d`` float64 tensor (a ``d`` vector, nothing else)."""
+    x0_t = x0 if isinstance(x0, Tensor) else torch.as_tensor(x0, dtype=DTYPE)
+    if x0_t.dim() != 1:
+        raise ValueError(f"x0 must have shape ({d},), got {tuple(x0_t.shape)}")
+    return as_knob_tensor(x0_t, d, name="x0")[0][0]
+
+
+def _warn_if_not_stationary(
+    newton_step: float, G: Tensor, on_bound: Tensor, knob_names: list[str]
+) -> None:
+    """The RuntimeWarning for an x0 whose Newton step exceeds :data:`GRADIENT_WARN_TOL`."""
+    if newton_step <= GRADIENT_WARN_TOL:
+        return
+    where = (
+        f"knobs {[knob_names[i] for i in on_bound.nonzero().flatten().tolist()]} lie on a "
+        "bound with f rising across it"
+        if on_bound.any()
+        else "x0 may lie on a bound or the search did not converge"
+    )
+    warnings.warn(
+        f"x0 is not a stationary point of log(f - f_inf): the Newton step to the maximum is "
+        f"{newton_step:.3g} correlation lengths (|G| = {G.norm().item():.3g}); {where}. "
+        "The gradient is kept in prior.gradient; the kernel uses only the curvature.",
+        RuntimeWarning,
+        stacklevel=4,
     )
 
 

@@ -43,8 +43,31 @@ def search_peak(
     n_sample_starts: int,
     x_init,
 ) -> dict[str, Any]:
-    """Sample ``f``, then run the batched local search on log(f - f_inf) / f (the steps are
-    described in :func:`~pigp_torch.prior.prior_from_model`)."""
+    r"""Search the maximizer :math:`\mathbf x_0` of ``f`` in the box ``b`` (``2 x d``).
+
+    ``f`` is evaluated (without gradients, in chunks of :data:`SAMPLE_CHUNK` rows) on the first
+    ``n_starts + n_samples`` points of a scrambled Sobol sequence of the box seeded with
+    ``seed``, and on the rows of ``x_init`` (``d`` or ``k x d``, clipped into the box). Batched
+    L-BFGS-B (:func:`~pigp_torch._utils.multistart.maximize_from`, in unit-cube coordinates)
+    then starts from the first ``n_starts`` Sobol points, the ``n_sample_starts`` best of the
+    other ``n_samples`` points and every row of ``x_init``. A start with
+    :math:`e = f - f_\infty > 0` climbs :math:`g = \log e` (same maximizer as :math:`f`, but its
+    gradient stays useful far in the tails of a peak, where that of :math:`f` underflows; the
+    search does not leave :math:`e > 0`); a start with :math:`e \le 0` climbs :math:`f`. The
+    end point with the largest :math:`f` is polished by a search of its own (the joint problem
+    stops when its slowest start does); :math:`\mathbf x_0` is the better of the two. Cost:
+    ``n_starts + n_samples`` (plus the rows of ``x_init``) evaluations of ``f`` without
+    gradients, then those of the L-BFGS-B iterations (each one batched call for all starts).
+
+    Returns:
+        ``{"x0", "f_x0", "best_sample_excess", "range", "n_evaluated", "n_local_starts"}``:
+        the ``d`` maximizer, :math:`f` there, the best sampled :math:`e`, the range of
+        :math:`f` over the samples and :math:`\mathbf x_0` (zero for a flat ``f``), and the
+        counts of sampled points and local starts.
+
+    Raises:
+        ValueError: a negative count, no start at all, or ``f`` non-finite everywhere.
+    """
     d = b.shape[1]
     lo, width = b[0], b[1] - b[0]
     for name, val in (
