@@ -4,7 +4,8 @@ r"""Benchmark sweeps on a Dask distributed cluster: one task per (method, machin
 :class:`distributed.Client`: either an existing cluster (a scheduler address such as
 ``tcp://10.0.0.5:8786``, whose workers must have ``pigp_torch`` installed) or ``"local"``, a
 :class:`distributed.LocalCluster` of single-threaded worker processes bound to 127.0.0.1 that lives
-for the call. :func:`~pigp_torch.benchmark.run_benchmark` uses it when given ``scheduler=``::
+for the call. :func:`run_jobs` runs the jobs here (serially or on a process pool) or through it;
+:func:`~pigp_torch.benchmark.run_benchmark` uses Dask when given ``scheduler=``::
 
     df = run_benchmark(["pigp", "ml2"], range(1, 13), scheduler="tcp://10.0.0.5:8786")
 
@@ -21,10 +22,12 @@ which threads slow down rather than speed up, and runs are the unit of paralleli
 
 from __future__ import annotations
 
+import functools
 import logging
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 #: Seconds to wait for the scheduler to answer and for the first worker to join.
@@ -188,3 +191,53 @@ def run_on_dask(
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def run_jobs(
+    fn: Callable[[Any], Any],
+    jobs: Sequence[Any],
+    *,
+    scheduler: str | None = None,
+    n_workers: int = 1,
+    labels: Sequence[str] | None = None,
+    progress: bool = False,
+) -> list:
+    r"""``[fn(job) for job in jobs]``, in job order, where the benchmark asks for it: here
+    serially (``scheduler=None``, ``n_workers=1``), on a ``ProcessPoolExecutor`` of
+    ``n_workers`` processes (``scheduler=None``), or on Dask (:func:`run_on_dask`, ``scheduler``
+    ``"local"`` or an address). With ``progress`` a tqdm bar over the jobs (``labels``: one text
+    per job, shown on Dask as each finishes).
+    """
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(jobs), desc="benchmark runs")
+    try:
+        if scheduler is not None:
+            on_done = None if bar is None else functools.partial(_advance, bar)
+            return run_on_dask(
+                fn, jobs, scheduler=scheduler, n_workers=n_workers, labels=labels, on_done=on_done
+            )
+        if int(n_workers) == 1:
+            results = []
+            for job in jobs:
+                results.append(fn(job))
+                if bar is not None:
+                    bar.update(1)
+            return results
+        with ProcessPoolExecutor(max_workers=int(n_workers)) as pool:
+            results = []
+            for result in pool.map(fn, jobs):  # results in job order
+                results.append(result)
+                if bar is not None:
+                    bar.update(1)
+            return results
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _advance(bar, _: int, label: str) -> None:
+    bar.set_postfix_str(f"finished {label}", refresh=False)
+    bar.update(1)

@@ -31,13 +31,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import zlib
-from concurrent.futures import ProcessPoolExecutor
 
 import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.archive import machine_archive
+from pigp_torch.benchmark.distributed import check_scheduler, run_jobs
 from pigp_torch.benchmark.machines import (
     _maps_key,
     benchmark_ring,
@@ -200,11 +200,6 @@ def run_one(
         return score_run(table, sim, f_star)
 
 
-def _advance(bar, label: str) -> None:
-    bar.set_postfix_str(f"finished {label}", refresh=False)
-    bar.update(1)
-
-
 def _run_job(args) -> pd.DataFrame:
     spec, seed, prior, kwargs = args
     torch.set_num_threads(1)
@@ -235,45 +230,37 @@ def run_benchmark(
     Args:
         methods: names from :data:`~pigp_torch.methods.METHODS` and/or
             :class:`~pigp_torch.methods.MethodSpec` objects.
-        machine_seeds: error seeds of the machines (integers, distinct).
-        model_seed: error seed of the model ring the prior is computed from; must not be a
-            machine seed.
-        budgets: evaluations per budget class, default ``{"gp": 100, "direct": 300}``
-            (start point included).
+        machine_seeds: error seeds of the machines (distinct integers).
+        model_seed: error seed of the model ring the prior is computed from; not a machine seed.
+        budgets: evaluations per budget class (start point included), default
+            ``{"gp": 100, "direct": 300}``.
         noise: measurement noise standard deviation (mA/min); also the prior's :math:`\sigma_n`.
         archive_size: archive readings for data-informed methods (ML-II).
         progress: tqdm bar over runs.
         n_workers: processes (``>1``: a ``ProcessPoolExecutor``; same numbers as serial); with
             ``scheduler="local"`` the number of Dask worker processes.
-        prior: use this prior instead of computing it from ``model_seed`` (it must come from a
-            model, not from a machine under test, with the same ``knobs``).
-        center_ensemble: when the prior is computed here, the number of further model rings
-            whose optima give its ``center_cov`` (:func:`model_prior`; 0: none, the
-            physics-form method then uses its box prior on the centre).
-        optimum_starts: starts of the search for each machine's :math:`f^*`; ``0``: no search,
-            ``f_star`` and ``gain_fraction`` are NaN (score by ``best_f_true``; for knob sets
-            where the search is too slow or unreliable, e.g. 72 knobs).
+        prior: use this prior instead of computing it from ``model_seed`` (from a model, not a
+            machine under test, with the same knobs).
+        optimum_starts: starts of the search for each machine's :math:`f^*`; ``0``: none,
+            ``f_star`` and ``gain_fraction`` NaN (score by ``best_f_true``, e.g. 72 knobs).
         knobs: knob set of the machines and the model ring (``"paper13"``, ``"powered14"``,
-            ``"all72"`` or winding names, see :class:`~pigp_torch.simulation.Spear3Coupling`);
-            overrides ``ring``'s.
-        ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
-            SPEAR3 user-mode ring, 13 knobs in amps).
-        machine_maps: every machine has its own loss-rate map (:func:`machine_loss_map`,
-            default); ``False``: the model's constants on every machine; ``(a, b)``: the
-            model's background times ``a`` and Touschek scale times ``b`` on every machine
-            (:func:`benchmark_ring`).
-        prior_source: how the prior is computed when not given (:func:`model_prior`):
-            ``"exact"`` (default) or ``"surrogate"`` (the paper's chain).
+            ``"all72"`` or winding names); overrides ``ring``'s.
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
             scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
-            127.0.0.1): one Dask task per run (:func:`~pigp_torch.benchmark.distributed.
-            run_on_dask`), same numbers as a local run.
+            127.0.0.1): one Dask task per run (:mod:`~pigp_torch.benchmark.distributed`).
+        center_ensemble: when the prior is computed here, the number of further model rings
+            whose optima give its ``center_cov`` (:func:`model_prior`; 0: none).
+        ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
+            SPEAR3 user-mode ring, 13 knobs in amps).
+        machine_maps: ``True`` (default): each machine its own loss-rate map
+            (:func:`machine_loss_map`); ``False``: the model's constants; ``(a, b)``: the
+            model's background times ``a`` and Touschek scale times ``b`` (:func:`benchmark_ring`).
+        prior_source: ``"exact"`` (default) or ``"surrogate"`` (:func:`model_prior`).
 
     Returns:
         DataFrame with columns ``method, machine_seed, step, <knobs>, y, ask_time_s,
-        eval_time_s, f_true, best_f_true, f0, f_star, gain_fraction``, ordered by method (as
-        given), machine seed (as given), step. ``step`` 0 is the start point (skews off), so
-        evaluation number = ``step + 1``.
+        eval_time_s, f_true, best_f_true, f0, f_star, gain_fraction``, ordered by method and
+        machine seed (as given), step; ``step`` 0 is the start point (skews off).
 
     Raises:
         ValueError: ``model_seed`` or an ensemble seed among ``machine_seeds``, duplicate
@@ -281,9 +268,47 @@ def run_benchmark(
             for other knobs.
         ConnectionError: the Dask scheduler cannot be reached (or has no workers) in time.
     """
-    specs = resolve_methods(methods)
-    ring = as_ring_spec(ring, knobs=knobs)
+    specs, ring = resolve_methods(methods), as_ring_spec(ring, knobs=knobs)
     seeds = [int(s) for s in machine_seeds]
+    budgets = _check_arguments(
+        specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler,
+        center_ensemble,
+    )  # fmt: skip
+    if not any(spec.uses_center_ensemble for spec in specs):
+        center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
+    if prior is None:
+        prior = _model_prior_for(
+            seeds, model_seed, noise, ring, center_ensemble, progress, prior_source
+        )
+    _check_prior_knobs(prior, ring, seeds[0])
+    shared = dict(noise=float(noise), archive_size=int(archive_size), ring=ring)
+    shared.update(optimum_starts=int(optimum_starts), machine_maps=_maps_key(machine_maps))
+    return _run_all(specs, seeds, prior, budgets, shared, scheduler, int(n_workers), progress)
+
+
+def _run_all(specs, seeds, prior, budgets, shared, scheduler, n_workers, progress):
+    """One job per (method, machine seed), run by
+    :func:`~pigp_torch.benchmark.distributed.run_jobs`; their tables, concatenated in job order
+    with ``method, machine_seed, step`` first."""
+    jobs = [
+        (spec, seed, prior, {"budget": int(budgets[spec.budget]), **shared})
+        for spec in specs
+        for seed in seeds
+    ]
+    labels = [f"{spec.name} seed {seed}" for spec, seed, _, _ in jobs]
+    tables = run_jobs(
+        _run_job, jobs, scheduler=scheduler, n_workers=n_workers, labels=labels, progress=progress
+    )
+    df = pd.concat(tables, ignore_index=True)
+    first = ["method", "machine_seed", "step"]
+    return df[first + [c for c in df.columns if c not in first]]
+
+
+def _check_arguments(
+    specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler, center_ensemble
+) -> dict[str, int]:
+    """The checks of :func:`run_benchmark`'s arguments, before anything expensive (an
+    unreachable cluster fails before the prior is computed); returns the budgets by class."""
     if not seeds:
         raise ValueError("no machine seeds given")
     if len(set(seeds)) != len(seeds):
@@ -306,84 +331,41 @@ def run_benchmark(
         raise ValueError(f"n_workers must be >= 1, got {n_workers}")
     if int(optimum_starts) < 0:
         raise ValueError(f"optimum_starts must be >= 0, got {optimum_starts}")
-    if scheduler is not None:  # an unreachable cluster fails before the prior is computed
-        from pigp_torch.benchmark.distributed import check_scheduler
-
+    if scheduler is not None:
         check_scheduler(scheduler)
     if int(center_ensemble) < 0:
         raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
-    if not any(spec.uses_center_ensemble for spec in specs):
-        center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
-    if prior is None:
-        shared = set(ensemble_seeds(center_ensemble)) & set(seeds) if center_ensemble else ()
-        if shared:
-            raise ValueError(
-                f"machine seeds {sorted(shared)} are also ensemble seeds of the prior: the "
-                "model must not know the machines' errors"
-            )
-        if progress and center_ensemble:
-            print(f"prior: model ring {model_seed} + optima of {center_ensemble} ensemble rings",
-                  flush=True)  # fmt: skip
-        prior = model_prior(
-            model_seed, noise=noise, ring=ring, center_ensemble=center_ensemble,
-            progress=progress, source=prior_source,
-        )  # fmt: skip
-    names = ring.build(seeds[0]).knob_names
+    return budgets
+
+
+def _model_prior_for(seeds, model_seed, noise, ring, center_ensemble, progress, source):
+    """:func:`model_prior` of the benchmark's model ring, whose ensemble rings must not be
+    machines under test."""
+    shared = set(ensemble_seeds(center_ensemble)) & set(seeds) if center_ensemble else ()
+    if shared:
+        raise ValueError(
+            f"machine seeds {sorted(shared)} are also ensemble seeds of the prior: the "
+            "model must not know the machines' errors"
+        )
+    if progress and center_ensemble:
+        print(
+            f"prior: model ring {model_seed} + optima of {center_ensemble} ensemble rings",
+            flush=True,
+        )
+    return model_prior(
+        model_seed,
+        noise=noise,
+        ring=ring,
+        center_ensemble=center_ensemble,
+        progress=progress,
+        source=source,
+    )
+
+
+def _check_prior_knobs(prior: PhysicsPrior, ring: RingSpec, seed: int) -> None:
+    names = ring.build(seed).knob_names
     if list(prior.knob_names) != names:
         raise ValueError(
             f"the prior is for {prior.dim} knobs, the machines have {len(names)} "
             f"({ring.describe()}): compute the prior from a model ring with the same knobs"
         )
-
-    jobs = [
-        (
-            spec,
-            seed,
-            prior,
-            {
-                "budget": int(budgets[spec.budget]),
-                "noise": float(noise),
-                "archive_size": int(archive_size),
-                "optimum_starts": int(optimum_starts),
-                "ring": ring,
-                "machine_maps": _maps_key(machine_maps),
-            },
-        )
-        for spec in specs
-        for seed in seeds
-    ]
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(jobs), desc="benchmark runs")
-    tables = []
-    try:
-        if scheduler is not None:
-            from pigp_torch.benchmark.distributed import run_on_dask
-
-            tables = run_on_dask(
-                _run_job,
-                jobs,
-                scheduler=scheduler,
-                n_workers=int(n_workers),
-                labels=[f"{spec.name} seed {seed}" for spec, seed, _, _ in jobs],
-                on_done=None if bar is None else lambda _, label: _advance(bar, label),
-            )
-        elif int(n_workers) == 1:
-            for job in jobs:
-                tables.append(_run_job(job))
-                if bar is not None:
-                    bar.update(1)
-        else:
-            with ProcessPoolExecutor(max_workers=int(n_workers)) as pool:
-                for table in pool.map(_run_job, jobs):  # results in job order
-                    tables.append(table)
-                    if bar is not None:
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-    df = pd.concat(tables, ignore_index=True)
-    first = ["method", "machine_seed", "step"]
-    return df[first + [c for c in df.columns if c not in first]]

@@ -155,3 +155,15 @@ def test_bad_arguments_raise_value_errors():
     with pytest.raises(ValueError, match="2 labels for 1 jobs"):
         run_on_dask(abs, [1], labels=["a", "b"])
     assert run_on_dask(abs, [], scheduler="tcp://127.0.0.1:1") == []
+
+
+def test_run_jobs_here_keeps_job_order_serially_and_on_a_process_pool(capsys):
+    """run_jobs without a scheduler: the results of fn in job order, serially and on two
+    processes alike; with progress, a bar that counts every job."""
+    from pigp_torch.benchmark.distributed import run_jobs
+
+    jobs = [-3, 1, -4, 1, -5]
+    assert run_jobs(abs, jobs) == [3, 1, 4, 1, 5]
+    assert run_jobs(abs, jobs, n_workers=2) == [3, 1, 4, 1, 5]
+    assert run_jobs(abs, jobs, progress=True) == [3, 1, 4, 1, 5]
+    assert "5/5" in capsys.readouterr().err
