@@ -144,16 +144,8 @@ def run_on_dask(
         Exception: the first exception raised by ``fn`` on a worker (the other tasks are
             cancelled).
     """
-    _check_scheduler_text(scheduler)
-    timeout = CONNECT_TIMEOUT if timeout is None else timeout
-    if int(n_workers) < 1:
-        raise ValueError(f"n_workers must be >= 1, got {n_workers}")
-    if not float(timeout) > 0:
-        raise ValueError(f"timeout must be positive, got {timeout}")
     jobs = list(jobs)
-    labels = [f"job {i}" for i in range(len(jobs))] if labels is None else [str(s) for s in labels]
-    if len(labels) != len(jobs):
-        raise ValueError(f"{len(labels)} labels for {len(jobs)} jobs")
+    timeout, labels = _checked(scheduler, n_workers, timeout, labels, len(jobs))
     if not jobs:
         return []
 
@@ -191,6 +183,21 @@ def run_on_dask(
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def _checked(scheduler, n_workers, timeout, labels, n_jobs) -> tuple[float, list[str]]:
+    """:func:`run_on_dask`'s arguments checked: the timeout (default :data:`CONNECT_TIMEOUT`)
+    and the labels (default ``"job <i>"``)."""
+    _check_scheduler_text(scheduler)
+    timeout = CONNECT_TIMEOUT if timeout is None else timeout
+    if int(n_workers) < 1:
+        raise ValueError(f"n_workers must be >= 1, got {n_workers}")
+    if not float(timeout) > 0:
+        raise ValueError(f"timeout must be positive, got {timeout}")
+    labels = [f"job {i}" for i in range(n_jobs)] if labels is None else [str(s) for s in labels]
+    if len(labels) != n_jobs:
+        raise ValueError(f"{len(labels)} labels for {n_jobs} jobs")
+    return timeout, labels
 
 
 def run_jobs(

@@ -68,8 +68,6 @@ def search_peak(
     Raises:
         ValueError: a negative count, no start at all, or ``f`` non-finite everywhere.
     """
-    d = b.shape[1]
-    lo, width = b[0], b[1] - b[0]
     for name, val in (
         ("n_starts", n_starts),
         ("n_samples", n_samples),
@@ -77,23 +75,9 @@ def search_peak(
     ):
         if val < 0:
             raise ValueError(f"{name} must be >= 0, got {val}")
-    n_sobol = n_starts + n_samples
-    Z_sobol = (
-        torch.quasirandom.SobolEngine(d, scramble=True, seed=seed).draw(n_sobol, dtype=DTYPE)
-        if n_sobol
-        else torch.empty(0, d, dtype=DTYPE)
-    )
-    Z_init = torch.empty(0, d, dtype=DTYPE)
-    if x_init is not None:
-        xi = as_knob_tensor(x_init, d, name="x_init")[0]
-        Z_init = ((xi - lo) / width).clamp(0.0, 1.0)
-    Z_all = torch.cat([Z_sobol, Z_init])
-    if Z_all.shape[0] == 0:
-        raise ValueError("no starting point: give n_starts > 0, n_samples > 0 or x_init")
-    y_all = _evaluate_chunked(f, lo + width * Z_all)
-    if not torch.isfinite(y_all).any():
-        raise ValueError(f"f was not finite at any of the {Z_all.shape[0]} sampled points")
-
+    lo, width = b[0], b[1] - b[0]
+    Z_sobol, Z_init, y_all = _sample(f, b, n_starts + n_samples, seed, x_init)
+    n_sobol = Z_sobol.shape[0]
     y_pool = y_all[n_starts:n_sobol]
     best = y_pool.argsort(descending=True)[: min(n_sample_starts, y_pool.numel())]
     best = best[torch.isfinite(y_pool[best])]
@@ -119,9 +103,33 @@ def search_peak(
         # range of f over the samples and x0: zero for a flat f
         "range": max(float(finite.max()), float(y_end[i]))
         - min(float(finite.min()), float(y_end[i])),
-        "n_evaluated": int(Z_all.shape[0]),
+        "n_evaluated": int(y_all.shape[0]),
         "n_local_starts": int(Z0.shape[0]),
     }
+
+
+def _sample(f, b: Tensor, n_sobol: int, seed: int, x_init):
+    """``f`` at the first ``n_sobol`` points of the scrambled Sobol sequence of seed ``seed``
+    and at the rows of ``x_init`` (clipped into the box ``b``): ``(Z_sobol, Z_init, y)``, the
+    points in unit-cube coordinates and the values at all of them, in that order."""
+    d = b.shape[1]
+    lo, width = b[0], b[1] - b[0]
+    Z_sobol = (
+        torch.quasirandom.SobolEngine(d, scramble=True, seed=seed).draw(n_sobol, dtype=DTYPE)
+        if n_sobol
+        else torch.empty(0, d, dtype=DTYPE)
+    )
+    Z_init = torch.empty(0, d, dtype=DTYPE)
+    if x_init is not None:
+        xi = as_knob_tensor(x_init, d, name="x_init")[0]
+        Z_init = ((xi - lo) / width).clamp(0.0, 1.0)
+    Z_all = torch.cat([Z_sobol, Z_init])
+    if Z_all.shape[0] == 0:
+        raise ValueError("no starting point: give n_starts > 0, n_samples > 0 or x_init")
+    y_all = _evaluate_chunked(f, lo + width * Z_all)
+    if not torch.isfinite(y_all).any():
+        raise ValueError(f"f was not finite at any of the {Z_all.shape[0]} sampled points")
+    return Z_sobol, Z_init, y_all
 
 
 def _climb(

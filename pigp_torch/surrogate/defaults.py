@@ -1,7 +1,10 @@
-"""Defaults and choices of the surrogate's training, as plain data (imports nothing heavy).
+r"""Defaults and choices of the surrogate's training, as plain data (imports nothing heavy).
 
 The single source of :func:`~pigp_torch.surrogate.train_surrogate`'s tuned defaults and of the
-choices the command line offers; the ``pigp`` parser reads them without loading torch.
+choices the command line offers; the ``pigp`` parser reads them without loading torch. The
+defaults (target ``inv_sq_excess``, 3 x 64 SiLU, batch 1024, lr 1e-2, 200 epochs, float32, one
+thread) were tuned for the accuracy of the Hessian of :math:`\log(\hat f - f_\infty)` at the
+optimum on 100k samples in 13 knobs.
 """
 
 #: smooth activations (twice differentiable: the prior takes the network's Hessian)

@@ -140,15 +140,7 @@ def train_surrogate(
     and ``inv_excess`` (:math:`p = 1`). After every epoch the validation loss is computed;
     from the second half of the schedule on, training stops after ``patience`` epochs without
     improvement (or after ``time_limit`` seconds), and the best weights are restored.
-
-    Samples with :math:`y - f_\infty` below ``excess_floor`` (default: :math:`10^{-3}` times the
-    median positive excess; in particular :math:`y \le f_\infty`, whose log excess is undefined)
-    are clamped to the floor, left out of :math:`m, s`, and counted in the report (a warning says
-    so).
-
-    The defaults (target ``inv_sq_excess``, 3 x 64 SiLU, batch 1024, lr 1e-2, 200 epochs, float32,
-    one thread) were tuned for the accuracy of the Hessian of :math:`\log(\hat f - f_\infty)` at
-    the optimum on 100k samples in 13 knobs (about 35 s on one CPU core).
+    The defaults were tuned (:mod:`~pigp_torch.surrogate.defaults`).
 
     Args:
         data: a :class:`~pigp_torch.data.dataset.Dataset` or a pair ``(X, y)`` with ``X``: ``N x d``
@@ -157,12 +149,13 @@ def train_surrogate(
         bounds: ``2 x d`` knob bounds; default: ``data.metadata["bounds"]``.
         widths, activation, target: architecture (see :class:`SurrogateMLP`).
         val_fraction: fraction of samples held out for validation (in ``(0, 1)``).
-        batch_size: minibatch size.
-        lr: peak learning rate; ``lr_min_factor``: final/peak ratio of the cosine decay.
-        weight_decay: AdamW decoupled weight decay.
-        max_epochs: maximum number of epochs; ``patience``: early-stopping patience (epochs).
+        batch_size, weight_decay: minibatch size; AdamW decoupled weight decay.
+        lr, lr_min_factor: peak learning rate; final/peak ratio of the cosine decay.
+        max_epochs, patience: maximum number of epochs; early-stopping patience (epochs).
         time_limit: optional wall-clock limit in seconds for the epoch loop.
-        excess_floor: floor for :math:`y - f_\infty` before the transform.
+        excess_floor: floor of :math:`y - f_\infty` (default :math:`10^{-3}` times the median
+            positive excess); samples below it (e.g. :math:`y \le f_\infty`) are clamped to it,
+            left out of :math:`m, s` and counted in the report (a warning says so).
         near_fraction: fraction of validation points with the highest loss rate that form the
             "near-optimum" subset of the report.
         seed: seeds the initialization, the split and the shuffling (same seed, same weights).
@@ -170,8 +163,7 @@ def train_surrogate(
         dtype: training precision (``torch.float32`` default; float64 is slower and, for
             these networks, does not change the prior's Hessian beyond its own noise).
         num_threads: CPU threads for the fit (restored afterwards); ``None`` keeps torch's
-            setting. A network this small gains nothing from intra-op parallelism, and on a
-            shared machine more threads are slower than one (they wait at barriers).
+            setting (a network this small gains nothing from intra-op parallelism).
         progress: show a tqdm progress bar.
 
     Returns:
@@ -224,41 +216,8 @@ def _train(
         raise ValueError(f"unknown target {target!r}; choose from {TARGETS}")
     if batch_size < 1 or max_epochs < 1 or patience < 1:
         raise ValueError("batch_size, max_epochs and patience must be positive")
-    n = x.shape[0]
-    i_tr, i_val = split_indices(n, val_fraction, seed)
-    n_train, n_val = len(i_tr), len(i_val)
-
-    excess = y - f_inf
-    if excess_floor is None:
-        pos = excess[excess > 0]
-        excess_floor = 1e-3 * float(pos.median()) if len(pos) else 1e-12
-    if not excess_floor > 0:
-        raise ValueError(f"excess_floor must be positive, got {excess_floor}")
-    clamped = excess < excess_floor
-    n_clamped = int(clamped.sum())
-    if n_clamped:
-        warnings.warn(
-            f"{n_clamped} of {n} samples have loss rate - f_inf below {excess_floor:.3g}; "
-            "clamped to that floor before the transform",
-            stacklevel=3,
-        )
-    t = torch.log(torch.clamp(excess, min=excess_floor))
-    v = target_values(y, f_inf, target, excess_floor)
-
-    # Output normalization: mean/std over the training points that were not clamped.
-    v_stat = v[i_tr][~clamped[i_tr]]
-    if len(v_stat) < 2:
-        v_stat = v[i_tr]
-    mean, std = float(v_stat.mean()), float(v_stat.std())
-    if not (std > 0 and math.isfinite(std)):
-        std = 1.0
-
-    # Per-sample loss weights: relative error of v for the inverse-power targets.
-    if target in ("inv_sq_excess", "inv_excess"):
-        c = (std / v) ** 2
-        c = c / c[i_tr].mean()
-    else:
-        c = torch.ones(n, dtype=torch.float64)
+    i_tr, i_val = split_indices(x.shape[0], val_fraction, seed)
+    t, v, c, (mean, std), excess_floor, n_clamped = _targets(y, f_inf, target, excess_floor, i_tr)
 
     torch.manual_seed(int(seed))
     model = SurrogateMLP(
@@ -272,24 +231,104 @@ def _train(
         z = ((v[idx] - mean) / std).to(device=dev, dtype=dtype)
         return x[idx].to(device=dev, dtype=dtype), z, c[idx].to(device=dev, dtype=dtype)
 
-    x_tr, z_tr, c_tr = put(i_tr)
-    x_va, z_va, c_va = put(i_val)
+    schedule = dict(
+        batch_size=batch_size, lr=lr, lr_min_factor=lr_min_factor, weight_decay=weight_decay,
+        max_epochs=max_epochs, patience=patience, time_limit=time_limit,
+    )  # fmt: skip
+    fit = _fit(model, put(i_tr), put(i_val), seed=seed, progress=progress, **schedule)
+    model.load_state_dict(fit.pop("best_state"))
+    model = model.to(device="cpu", dtype=torch.float64).eval()
+    with torch.no_grad():  # exact float64 values (training in float32 rounded the buffers)
+        model.bounds.copy_(b)
+        model.f_inf.fill_(f_inf)
+        model.target_mean.fill_(mean)
+        model.target_std.fill_(std)
+    report = {"n_train": len(i_tr), "n_val": len(i_val), **fit, "n_clamped": n_clamped}
+    report.update({
+        "excess_floor": float(excess_floor), "f_inf": f_inf, "target": target,
+        "target_mean": mean, "target_std": std, "widths": list(model.widths),
+        "activation": model.activation, "batch_size": int(batch_size), "lr": float(lr),
+        "weight_decay": float(weight_decay), "max_epochs": int(max_epochs), "seed": int(seed),
+        "device": str(dev), "dtype": str(dtype).replace("torch.", ""),
+        "num_threads": torch.get_num_threads(),
+    })  # fmt: skip
+    report.update(_metrics(model, x[i_val], y[i_val], t[i_val], near_fraction))
+    return model, report
 
-    def loss_fn(z_hat, z, w):
-        return torch.mean(w * (z_hat - z) ** 2)
 
+def _targets(y: torch.Tensor, f_inf: float, target: str, excess_floor, i_tr: torch.Tensor):
+    r"""What the network is fitted to, from the loss rates ``y`` (``N``): the log excess
+    :math:`t = \log \max(y - f_\infty, \text{floor})`, the target :math:`v`
+    (:func:`target_values`), the per-sample loss weights :math:`c` (the relative error of
+    :math:`v`, :math:`c \propto (s / v)^2`, for the inverse-power targets; else 1) and the
+    normalization :math:`(m, s)` of :math:`v` over the training points ``i_tr`` that were not
+    clamped; returns ``(t, v, c, (m, s), floor, n_clamped)``. Default floor: :math:`10^{-3}`
+    times the median positive excess; a warning counts the clamped samples."""
+    n = y.shape[0]
+    excess = y - f_inf
+    if excess_floor is None:
+        pos = excess[excess > 0]
+        excess_floor = 1e-3 * float(pos.median()) if len(pos) else 1e-12
+    if not excess_floor > 0:
+        raise ValueError(f"excess_floor must be positive, got {excess_floor}")
+    clamped = excess < excess_floor
+    n_clamped = int(clamped.sum())
+    if n_clamped:
+        warnings.warn(
+            f"{n_clamped} of {n} samples have loss rate - f_inf below {excess_floor:.3g}; "
+            "clamped to that floor before the transform",
+            stacklevel=4,
+        )
+    t = torch.log(torch.clamp(excess, min=excess_floor))
+    v = target_values(y, f_inf, target, excess_floor)
+    v_stat = v[i_tr][~clamped[i_tr]]
+    if len(v_stat) < 2:
+        v_stat = v[i_tr]
+    mean, std = float(v_stat.mean()), float(v_stat.std())
+    if not (std > 0 and math.isfinite(std)):
+        std = 1.0
+    if target in ("inv_sq_excess", "inv_excess"):
+        c = (std / v) ** 2
+        c = c / c[i_tr].mean()
+    else:
+        c = torch.ones(n, dtype=torch.float64)
+    return t, v, c, (mean, std), excess_floor, n_clamped
+
+
+def _weighted_mse(z_hat, z, w):
+    return torch.mean(w * (z_hat - z) ** 2)
+
+
+def _fit(
+    model: SurrogateMLP,
+    train,
+    val,
+    *,
+    seed,
+    progress,
+    batch_size,
+    lr,
+    lr_min_factor,
+    weight_decay,
+    max_epochs,
+    patience,
+    time_limit,
+) -> dict:
+    """AdamW with the cosine decay on the ``(x, z, c)`` tensors ``train``, the validation loss
+    on ``val`` after each epoch, early stopping (:func:`train_surrogate`). Returns the epochs,
+    best epoch, time, best validation and final training loss, and ``best_state`` (weights)."""
+    (x_tr, z_tr, c_tr), (x_va, z_va, c_va) = train, val
+    n_train, dev, dtype = x_tr.shape[0], x_tr.device, x_tr.dtype
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(
         opt, T_max=max_epochs, eta_min=lr * lr_min_factor
     )
     gen = torch.Generator().manual_seed(int(seed) + 1)
-
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=max_epochs, desc="train surrogate", unit="epoch", leave=False)
-
     best_val, best_state, best_epoch, epoch = float("inf"), None, 0, 0
     train_loss = float("nan")
     t0 = time.perf_counter()
@@ -300,14 +339,14 @@ def _train(
         for start in range(0, n_train, batch_size):
             idx = order[start : start + batch_size]
             opt.zero_grad(set_to_none=True)
-            loss = loss_fn(model.normalized_output(x_tr[idx]), z_tr[idx], c_tr[idx])
+            loss = _weighted_mse(model.normalized_output(x_tr[idx]), z_tr[idx], c_tr[idx])
             loss.backward()
             opt.step()
             total += loss.detach() * len(idx)
         sched.step()
         model.eval()
         with torch.no_grad():
-            val = float(loss_fn(model.normalized_output(x_va), z_va, c_va))
+            val = float(_weighted_mse(model.normalized_output(x_va), z_va, c_va))
         train_loss = float(total) / n_train
         if not math.isfinite(val):
             raise RuntimeError(f"training diverged at epoch {epoch} (validation loss {val})")
@@ -326,39 +365,7 @@ def _train(
     train_time = time.perf_counter() - t0
     if bar is not None:
         bar.close()
-
-    model.load_state_dict(best_state)
-    model = model.to(device="cpu", dtype=torch.float64).eval()
-    with torch.no_grad():  # exact float64 values (training in float32 rounded the buffers)
-        model.bounds.copy_(b)
-        model.f_inf.fill_(f_inf)
-        model.target_mean.fill_(mean)
-        model.target_std.fill_(std)
-
-    report = {
-        "n_train": n_train,
-        "n_val": n_val,
-        "epochs": epoch,
-        "best_epoch": best_epoch,
-        "train_time_s": train_time,
-        "best_val_loss": best_val,
-        "final_train_loss": train_loss,
-        "n_clamped": n_clamped,
-        "excess_floor": float(excess_floor),
-        "f_inf": f_inf,
-        "target": target,
-        "target_mean": mean,
-        "target_std": std,
-        "widths": list(model.widths),
-        "activation": model.activation,
-        "batch_size": int(batch_size),
-        "lr": float(lr),
-        "weight_decay": float(weight_decay),
-        "max_epochs": int(max_epochs),
-        "seed": int(seed),
-        "device": str(dev),
-        "dtype": str(dtype).replace("torch.", ""),
-        "num_threads": torch.get_num_threads(),
-    }
-    report.update(_metrics(model, x[i_val], y[i_val], t[i_val], near_fraction))
-    return model, report
+    return {
+        "epochs": epoch, "best_epoch": best_epoch, "train_time_s": train_time,
+        "best_val_loss": best_val, "final_train_loss": train_loss, "best_state": best_state,
+    }  # fmt: skip
