@@ -19,13 +19,13 @@ from pigp_torch.data.sampling import generate_dataset
 from pigp_torch.loop.progress import reporting_spec
 from pigp_torch.methods import METHODS
 from pigp_torch.prior import prior_from_model
-from pigp_torch.simulation import Spear3Coupling
 from pigp_torch.simulation.ensemble import (
     ENSEMBLE_SEED0,
     check_ensemble_size,
     with_center_ensemble,
 )
 from pigp_torch.simulation.spear3 import knob_names_for
+from pigp_torch.simulation.spec import SPEAR3
 from pigp_torch.surrogate import train_ensemble
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
@@ -104,7 +104,7 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     cache = None if a.no_cache else DemoCache(a.cache_dir or default_cache_dir())
     key = {"model_seed": a.model_seed, "n": a.n, "members": a.members,
            "target": a.target, "noise": 0.04, "sample_seed": 0}  # fmt: skip
-    model_ring = Spear3Coupling(a.model_seed)
+    model_ring = SPEAR3.build(a.model_seed)
     hit = None if cache is None else cache.load_prior(key)
     if hit is not None:
         prior, reports = hit

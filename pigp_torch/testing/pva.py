@@ -255,12 +255,12 @@ def start_sim_pva(
     update_period: float = 0.1,
     x_init=None,
 ) -> Iterator[tuple[SimRingPVA, dict[str, str]]]:
-    """Serve ``Spear3Coupling(seed, knobs=knobs)`` over pvAccess on 127.0.0.1 in this process
-    (threads) for the block; yields ``(server, client_conf)``."""
+    """Serve the SPEAR3 ring ``RingSpec(knobs=knobs).build(seed)`` over pvAccess on 127.0.0.1
+    in this process (threads) for the block; yields ``(server, client_conf)``."""
     from pigp_torch.machine import SimulatedMachine
-    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import as_ring_spec
 
-    sim = Spear3Coupling(int(seed), knobs=knobs)
+    sim = as_ring_spec(None, knobs=knobs).build(int(seed))
     machine = SimulatedMachine(sim, noise=noise, seed=noise_seed)
     ring = SimRingPVA(
         machine,
