@@ -77,3 +77,17 @@ def job_pool(workers: int):
         raise
     else:
         pool.shutdown(wait=True)
+
+
+def spread(pool, jobs, local) -> list:
+    """Futures of ``jobs`` (``(fn, args, kwargs)`` each, in their order): every job whose index
+    is not in ``local`` is submitted to ``pool`` first, then those in ``local`` run here."""
+    futures: dict = {}
+    for i, (fn, args, kw) in enumerate(jobs):
+        if i not in local:
+            futures[i] = pool.submit(fn, *args, **kw)
+    here = InlineExecutor()
+    for i in sorted(local):
+        fn, args, kw = jobs[i]
+        futures[i] = here.submit(fn, *args, **kw)
+    return [futures[i] for i in range(len(jobs))]

@@ -14,7 +14,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from pigp_torch._utils.pool import InlineExecutor, default_workers, job_pool
+from pigp_torch._utils.pool import InlineExecutor, default_workers, job_pool, spread
 from pigp_torch.benchmark.demo_cache import (
     DemoCache,
     apply_cached_ensemble,
@@ -108,20 +108,6 @@ def _train_member(data, seed: int, target: str, progress: bool):
 def _run_method(spec, machine_seed: int, prior, budget: int):
     """One method's run on the demo's machine (a job)."""
     return run_one(spec, machine_seed, prior, budget=budget)
-
-
-def spread(pool, jobs, local) -> list:
-    """Futures of ``jobs`` (``(fn, args, kwargs)`` each, in their order): every job whose index
-    is not in ``local`` is submitted to ``pool`` first, then those in ``local`` run here."""
-    futures: dict = {}
-    for i, (fn, args, kw) in enumerate(jobs):
-        if i not in local:
-            futures[i] = pool.submit(fn, *args, **kw)
-    here = InlineExecutor()
-    for i in sorted(local):
-        fn, args, kw = jobs[i]
-        futures[i] = here.submit(fn, *args, **kw)
-    return [futures[i] for i in range(len(jobs))]
 
 
 def _check(a: DemoSettings) -> None:
