@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import pickle
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 
 
@@ -79,13 +80,27 @@ def job_pool(workers: int):
         pool.shutdown(wait=True)
 
 
+def _run_pickled(payload: bytes):
+    fn, args, kw = pickle.loads(payload)  # our own bytes, from the caller of spread()
+    return fn(*args, **kw)
+
+
 def spread(pool, jobs, local) -> list:
     """Futures of ``jobs`` (``(fn, args, kwargs)`` each, in their order): every job whose index
-    is not in ``local`` is submitted to ``pool`` first, then those in ``local`` run here."""
+    is not in ``local`` is submitted to ``pool`` first, then those in ``local`` run here.
+
+    A job for another process is pickled here, before anything runs: a process pool pickles its
+    arguments later, on a thread of its own, and torch's multiprocessing pickler moves a
+    tensor's storage into shared memory as it goes, which would pull the storage from under a
+    job that reads the same tensor here at that moment (a crash in torch's kernels).
+    """
     futures: dict = {}
     for i, (fn, args, kw) in enumerate(jobs):
         if i not in local:
-            futures[i] = pool.submit(fn, *args, **kw)
+            if isinstance(pool, InlineExecutor):
+                futures[i] = pool.submit(fn, *args, **kw)
+            else:
+                futures[i] = pool.submit(_run_pickled, pickle.dumps((fn, args, kw)))
     here = InlineExecutor()
     for i in sorted(local):
         fn, args, kw = jobs[i]
