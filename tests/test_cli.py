@@ -248,3 +248,21 @@ def test_summary_table_fits_100_columns():
     assert row == ["ml2", "24", "20/24", "32", "[22-48]", "0.812", "0.950", "-", "1.6987", "0.213"]
     table.loc["ml2", "steps_to_95_median"] = 101.0  # the median run did not reach 95 %
     assert format_summary(table).splitlines()[3].split()[3] == ">100"
+
+
+@pytest.mark.slow
+def test_demo_on_two_processes_gives_the_numbers_of_one(tmp_path):
+    """`pigp demo --workers 2` (networks, ensemble rings and runs shared with a spawned process)
+    writes the same prior file, byte for byte, and the same runs as `--workers 1`."""
+    import pandas as pd
+
+    argv = ["demo", "--n", "3000", "--members", "2", "--budget", "4", "--target", "log_excess"]
+    argv += ["--methods", "pigp-physics", "ml2", "--center-ensemble", "14", "--no-cache"]
+    for w in (1, 2):
+        assert main([*argv, "--workers", str(w), "-o", str(tmp_path / f"w{w}")]) == 0
+    one, two = tmp_path / "w1", tmp_path / "w2"
+    assert (one / "prior.json").read_bytes() == (two / "prior.json").read_bytes()
+    a, b = pd.read_csv(one / "runs.csv"), pd.read_csv(two / "runs.csv")
+    timing = [c for c in a.columns if c.endswith("_time_s")]
+    assert len(a) == 8 and set(timing) == {"ask_time_s", "eval_time_s"}
+    pd.testing.assert_frame_equal(a.drop(columns=timing), b.drop(columns=timing))

@@ -7,13 +7,20 @@ it -> each method on a simulated machine with another error seed, scored as in t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
 import torch
 
-from pigp_torch.benchmark.demo_cache import DemoCache, default_cache_dir, with_cached_ensemble
+from pigp_torch._utils.pool import InlineExecutor, default_workers, job_pool, spread
+from pigp_torch.benchmark.demo_cache import (
+    DemoCache,
+    apply_cached_ensemble,
+    default_cache_dir,
+    ensemble_key,
+)
 from pigp_torch.benchmark.protocol import machine_loss_map, run_one
 from pigp_torch.data.sampling import generate_dataset
 from pigp_torch.loop.progress import reporting_spec
@@ -22,11 +29,14 @@ from pigp_torch.prior import prior_from_model
 from pigp_torch.simulation.ensemble import (
     ENSEMBLE_SEED0,
     check_ensemble_size,
+    ensemble_plan,
+    gather_optima,
+    ring_optima,
     with_center_ensemble,
 )
 from pigp_torch.simulation.spear3 import knob_names_for
 from pigp_torch.simulation.spec import SPEAR3
-from pigp_torch.surrogate import train_ensemble
+from pigp_torch.surrogate import SurrogateEnsemble, train_surrogate
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
 
@@ -45,6 +55,9 @@ class DemoSettings:
         center_ensemble: ensemble rings for the methods that use the error ensemble (0: none).
         cache_dir: cache folder (``None``: :func:`default_cache_dir`).
         no_cache: read and write no cache.
+        workers: processes for the independent jobs (the surrogate's networks, the ensemble
+            rings, the methods' runs; default :func:`~pigp_torch._utils.pool.default_workers`:
+            the CPUs available, at most 2). The numbers do not depend on it.
     """
 
     model_seed: int = 0
@@ -57,6 +70,7 @@ class DemoSettings:
     center_ensemble: int = 20
     cache_dir: Path | None = None
     no_cache: bool = False
+    workers: int = field(default_factory=default_workers)
 
 
 def print_reports(reports) -> None:
@@ -86,7 +100,17 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         torch.set_num_threads(threads)
 
 
-def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
+def _train_member(data, seed: int, target: str, progress: bool):
+    """One surrogate network (a job of :func:`~pigp_torch._utils.pool.job_pool`)."""
+    return train_surrogate(data, seed=seed, target=target, progress=progress)
+
+
+def _run_method(spec, machine_seed: int, prior, budget: int):
+    """One method's run on the demo's machine (a job)."""
+    return run_one(spec, machine_seed, prior, budget=budget)
+
+
+def _check(a: DemoSettings) -> None:
     if a.model_seed == a.machine_seed:
         raise ValueError("the model ring and the machine must have different error seeds")
     check_ensemble_size(a.center_ensemble, len(knob_names_for("paper13")))  # the demo's knobs
@@ -101,24 +125,99 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     unknown = [m for m in a.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; known: {sorted(METHODS)}")
+    if int(a.workers) < 1:
+        raise ValueError(f"--workers must be >= 1, got {a.workers}")
+
+
+def _elapsed(t0: float) -> str:
+    return f"{time.perf_counter() - t0:.0f} s"
+
+
+def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
+    _check(a)
+    t_start = time.perf_counter()
     cache = None if a.no_cache else DemoCache(a.cache_dir or default_cache_dir())
     key = {"model_seed": a.model_seed, "n": a.n, "members": a.members,
            "target": a.target, "noise": 0.04, "sample_seed": 0}  # fmt: skip
     model_ring = SPEAR3.build(a.model_seed)
+    names = list(model_ring.knob_names)
     hit = None if cache is None else cache.load_prior(key)
+    want_ensemble = bool(a.center_ensemble) and any(
+        METHODS[m].uses_center_ensemble for m in a.methods
+    )
+    ens_key = ensemble_key(a.model_seed, a.center_ensemble, names)
+    ens_hit = None if cache is None or not want_ensemble else cache.load_ensemble(ens_key)
+    with job_pool(a.workers) as pool:
+        parallel = not isinstance(pool, InlineExecutor)
+        data = None
+        if hit is None:
+            t0 = time.perf_counter()
+            print(f"[1/4] simulated data of the model ring (error seed {a.model_seed})",
+                  flush=True)  # fmt: skip
+            data = generate_dataset(model_ring, a.n, seed=0, progress=True)
+            print(f"      {len(data)} samples ({_elapsed(t0)})", flush=True)
+            print(f"[2/4] surrogate: {a.members} network(s) on {len(data)} samples"
+                  + (f", on {a.workers} processes" if parallel else ""), flush=True)  # fmt: skip
+        t_train = time.perf_counter()
+        jobs = [(_train_member, (data, k, a.target, not parallel), {})
+                for k in range(a.members if hit is None else 0)]  # fmt: skip
+        # the caller trains every a.workers-th network; the others and the rings go to the pool
+        local = set(range(0, len(jobs), a.workers))
+        if want_ensemble and ens_hit is None:
+            ring_model, seeds = ensemble_plan(
+                a.center_ensemble, {"error_seed": a.model_seed}, names, a.machine_seed
+            )
+            if parallel:
+                print(f"      and, alongside, the optima of {len(seeds)} ensemble rings",
+                      flush=True)  # fmt: skip
+            # the rings in one part per spawned process (and one for the caller, if it has no
+            # network to train)
+            n_parts = 1 if not parallel else a.workers - (1 if jobs else 0)
+            part = -(-len(seeds) // n_parts)
+            if not jobs and parallel:
+                local = {0}
+            jobs += [(ring_optima, (seeds[i : i + part],), {"model": ring_model, "progress": True,
+                      "first_index": i, "total": len(seeds)})
+                     for i in range(0, len(seeds), part)]  # fmt: skip
+        done = spread(pool, jobs, local)
+        members = done[: a.members] if hit is None else []
+        rings = done[len(members) :]
+        prior = _surrogate_prior(a, hit, members, model_ring, cache, key, t_train)
+        if want_ensemble:
+            prior = _with_ensemble(a, prior, ens_hit, rings, cache, ens_key)
+        f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
+        print(f"[4/4] {', '.join(a.methods)} on the benchmark's machine {a.machine_seed}, "
+              f"{a.budget} evaluations each: coupling-error seed {a.machine_seed} with its own "
+              f"loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
+              f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it "
+              f"with machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}"
+              + (f"; {a.workers} runs at a time" if parallel else ""), flush=True)  # fmt: skip
+        t0 = time.perf_counter()
+        unit = model_ring.knob_units
+        specs = [reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min")
+                 for m in a.methods]  # fmt: skip
+        # the caller runs the last method (the baselines come last: ML-II is the slowest)
+        jobs = [(_run_method, (s, a.machine_seed, prior, a.budget), {}) for s in specs]
+        runs = spread(pool, jobs, {len(jobs) - 1})
+        table = pd.concat([r.result() for r in runs], ignore_index=True)
+    print(f"      runs done ({_elapsed(t0)}); the demo took {_elapsed(t_start)}", flush=True)
+    return table, prior
+
+
+def _surrogate_prior(a, hit, members, model_ring, cache, key, t0):
+    """Stages 1-3: the cached prior, or the trained members' ensemble and its prior."""
     if hit is not None:
         prior, reports = hit
         print(f"[1-3/4] physics prior of the surrogate from the cache ({cache.path('prior', key)}"
               "; --no-cache recomputes it)", flush=True)  # fmt: skip
         print_reports(reports)
     else:
-        print(f"[1/4] simulated data of the model ring (error seed {a.model_seed})", flush=True)
-        data = generate_dataset(model_ring, a.n, seed=0, progress=True)
-        print(f"[2/4] surrogate: {a.members} network(s) on {len(data)} samples", flush=True)
-        surrogate, reports = train_ensemble(
-            data, n_members=a.members, target=a.target, progress=True
-        )
+        trained = [m.result() for m in members]
+        reports = [r for _, r in trained]
         print_reports(reports)
+        print(f"      trained ({_elapsed(t0)})", flush=True)
+        surrogate = SurrogateEnsemble([m for m, _ in trained]).double().eval()
+        t1 = time.perf_counter()
         print("[3/4] physics prior: optimum and Hessian of the surrogate", flush=True)
         prior = prior_from_model(
             surrogate,
@@ -128,31 +227,26 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
             knob_names=model_ring.knob_names,
             provenance={"surrogate_of": f"Spear3Coupling(error_seed={a.model_seed})"},
         )
+        print(f"      ({_elapsed(t1)})", flush=True)
         if cache is not None:
             cache.save_prior(key, prior, reports)
     print(f"      condition number {prior.condition_number:.0f}, surrogate optimum "
           f"{prior.f_x0:.3f} mA/min")  # fmt: skip
-    if a.center_ensemble and any(METHODS[m].uses_center_ensemble for m in a.methods):
-        meta = {"error_seed": a.model_seed}
+    return prior
 
-        def compute(p):
-            return with_center_ensemble(p, a.center_ensemble, meta, a.machine_seed, progress=True)
 
-        prior, source = with_cached_ensemble(prior, a.center_ensemble, a.model_seed, cache, compute)
-        if source is not None:
-            print(f"      optima of {a.center_ensemble} ensemble rings from the cache "
-                  f"({source})", flush=True)  # fmt: skip
-    f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
-    print(f"[4/4] {', '.join(a.methods)} on the benchmark's machine {a.machine_seed}, "
-          f"{a.budget} evaluations each: coupling-error seed {a.machine_seed} with its own "
-          f"loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
-          f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it with "
-          f"machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}",
-          flush=True)  # fmt: skip
-    names, unit = model_ring.knob_names, model_ring.knob_units
-    runs = [
-        run_one(reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min"),
-                a.machine_seed, prior, budget=a.budget)
-        for m in a.methods
-    ]  # fmt: skip
-    return pd.concat(runs, ignore_index=True), prior
+def _with_ensemble(a, prior, ens_hit, rings, cache, ens_key):
+    """The prior with the error ensemble's fields, from the cache or the rings' jobs."""
+    meta = {"error_seed": a.model_seed}
+    if ens_hit is not None:
+        print(f"      optima of {a.center_ensemble} ensemble rings from the cache "
+              f"({cache.path('ensemble', ens_key)})", flush=True)  # fmt: skip
+        return apply_cached_ensemble(prior, ens_hit)
+    t0 = time.perf_counter()
+    optima = gather_optima([r for part in rings for r in part.result()])
+    prior = with_center_ensemble(prior, a.center_ensemble, meta, a.machine_seed, optima=optima)
+    print(f"      optima of {len(optima.seeds)} ensemble rings in the prior "
+          f"(waited {_elapsed(t0)} for them)", flush=True)  # fmt: skip
+    if cache is not None:
+        cache.save_ensemble(ens_key, prior)
+    return prior

@@ -134,6 +134,18 @@ class DemoCache:
         )
 
 
+def ensemble_key(model_seed: int, size: int, knob_names) -> dict:
+    """The cache key of an error ensemble of ``size`` rings of the model ring ``model_seed``."""
+    return {"model_seed": int(model_seed), "size": int(size), "knobs": list(knob_names)}
+
+
+def apply_cached_ensemble(prior, hit: dict):
+    """``prior`` with the fields of a cached ensemble (:meth:`DemoCache.load_ensemble`)."""
+    provenance = {**prior.provenance, "center_ensemble_seeds": hit["seeds"]}
+    fields = {"center_cov": hit["center_cov"], "peak_shape": hit["peak_shape"]}
+    return dataclasses.replace(prior, **fields, provenance=provenance)
+
+
 def with_cached_ensemble(prior, size: int, model_seed: int, cache: DemoCache | None, compute):
     r"""``prior`` with the error ensemble's fields: from ``cache`` when it holds them, else
     ``compute(prior)`` (which returns the prior with them), then stored.
@@ -141,14 +153,10 @@ def with_cached_ensemble(prior, size: int, model_seed: int, cache: DemoCache | N
     Returns:
         ``(prior, source)``, ``source`` the cache file read or ``None`` when computed.
     """
-    key = {"model_seed": int(model_seed), "size": int(size), "knobs": list(prior.knob_names)}
+    key = ensemble_key(model_seed, size, prior.knob_names)
     hit = None if cache is None else cache.load_ensemble(key)
     if hit is not None:
-        provenance = {**prior.provenance, "center_ensemble_seeds": hit["seeds"]}
-        fields = {"center_cov": hit["center_cov"], "peak_shape": hit["peak_shape"]}
-        return dataclasses.replace(prior, **fields, provenance=provenance), cache.path(
-            "ensemble", key
-        )
+        return apply_cached_ensemble(prior, hit), cache.path("ensemble", key)
     out = compute(prior)
     if cache is not None:
         cache.save_ensemble(key, out)

@@ -9,6 +9,7 @@ from pigp_torch.commands.train_surrogate import train_default
 
 
 def cmd_demo(args) -> int:
+    from pigp_torch._utils.pool import default_workers
     from pigp_torch.benchmark.demo import DemoSettings, run_demo
     from pigp_torch.commands.compare import write_comparison
 
@@ -23,6 +24,7 @@ def cmd_demo(args) -> int:
         center_ensemble=args.center_ensemble,
         cache_dir=args.cache_dir,
         no_cache=args.no_cache,
+        workers=default_workers() if args.workers is None else args.workers,
     )
     df, prior = run_demo(settings)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -76,6 +78,15 @@ def register(sub, bench) -> None:
     )
     p.add_argument(
         "--no-cache", action="store_true", help="recompute everything; read and write no cache"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="processes for the independent jobs: the surrogate's networks, the ensemble rings "
+        "and the methods' runs (default: the CPUs available, at most 2; 1: all in this process). "
+        "The numbers do not depend on it",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("runs/demo"), help="output folder")
     p.set_defaults(func=cmd_demo)

@@ -157,7 +157,9 @@ def ensemble_optima(
     The optimum is the centre :math:`\boldsymbol\mu` of the physics form that
     :class:`~pigp_torch.models.InverseSqrtPeakModel` fits, and its shape :math:`B`; both come
     from :func:`unconstrained_optimum` (a growing search box, each result checked to be a
-    maximum; ~2-6 s a ring at 13 knobs).
+    maximum; a few seconds a ring at 13 knobs). :func:`ring_optima` computes them ring by ring
+    (several processes may each take a part of the seeds) and :func:`gather_optima` assembles
+    the result; this function is the two in one process.
 
     Args:
         seeds: error seeds of the model rings.
@@ -177,10 +179,42 @@ def ensemble_optima(
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds given")
+    found = ring_optima(seeds, model=model, knobs=knobs, optics=optics, reach=reach,
+                        progress=progress)  # fmt: skip
+    return gather_optima(found)
+
+
+def ring_optima(
+    seeds,
+    *,
+    model: RingCoupling | None = None,
+    knobs="paper13",
+    optics: str = "user",
+    reach: float = 4.0,
+    progress: bool = False,
+    first_index: int = 0,
+    total: int | None = None,
+) -> list[tuple]:
+    r"""The optimum of each ring ``model.with_seed(s)`` (:func:`unconstrained_optimum`).
+
+    Args:
+        seeds: error seeds; model, knobs, optics, reach: as :func:`ensemble_optima`.
+        progress: print one line per ring, numbered ``first_index + k + 1`` of ``total``
+            (default ``len(seeds)``): a part of a larger ensemble numbers its rings in it.
+
+    Returns:
+        one ``(seed, x, B, reason)`` per seed: the ``d`` optimum and ``d x d`` shape, or
+        ``None, None`` and why the ring could not be used.
+
+    Raises:
+        ValueError: ``reach < 1``.
+    """
     if not float(reach) >= 1.0:
         raise ValueError(f"reach must be >= 1, got {reach}")
-    used, rows, shapes, failed = [], [], [], []
-    for k, s in enumerate(seeds):
+    total = len(seeds) if total is None else int(total)
+    out = []
+    for k, s in enumerate(int(s) for s in seeds):
+        label = f"  ensemble ring {first_index + k + 1}/{total} (seed {s})"
         try:
             if model is None:
                 sim = Spear3Coupling(s, knobs=knobs, optics=optics)
@@ -188,27 +222,42 @@ def ensemble_optima(
                 sim = model.with_seed(s)
             x, f, B = unconstrained_optimum(sim, reach)
         except (RuntimeError, ValueError) as err:
-            failed.append((s, str(err)))
+            out.append((s, None, None, str(err)))
             if progress:
-                print(
-                    f"  ensemble ring {k + 1}/{len(seeds)} (seed {s}): skipped: {err}", flush=True
-                )
+                print(f"{label}: skipped: {err}", flush=True)
             continue
-        used.append(s)
-        rows.append(x)
-        shapes.append(B)
+        out.append((s, x, B, None))
         if progress:
-            print(f"  ensemble ring {k + 1}/{len(seeds)} (seed {s}): optimum {f:.3f} mA/min, "
+            print(f"{label}: optimum {f:.3f} mA/min, "
                   f"max |knob| {float((x.abs() / sim.bounds[1]).max()):.2f} of the limit",
                   flush=True)  # fmt: skip
+    return out
+
+
+def gather_optima(results) -> EnsembleOptima:
+    """:class:`EnsembleOptima` of :func:`ring_optima`'s results (in their order); a warning
+    names the rings that could not be used.
+
+    Raises:
+        ValueError: no ring could be used (the reasons are listed).
+    """
+    results = list(results)
+    used = [(s, x, B) for s, x, B, why in results if why is None]
+    failed = tuple((s, why) for s, _, _, why in results if why is not None)
     if failed:
         lines = "; ".join(f"seed {s}: {why}" for s, why in failed)
         warnings.warn(
-            f"{len(failed)} of {len(seeds)} ensemble rings skipped: {lines}", stacklevel=2
+            f"{len(failed)} of {len(results)} ensemble rings skipped: {lines}", stacklevel=2
         )
-    if not rows:
-        raise ValueError(f"no ring of seeds {seeds} could be used: {failed}")
-    return EnsembleOptima(used, torch.stack(rows), torch.stack(shapes), tuple(failed))
+    if not used:
+        seeds = [r[0] for r in results]
+        raise ValueError(f"no ring of seeds {seeds} could be used: {list(failed)}")
+    return EnsembleOptima(
+        [s for s, _, _ in used],
+        torch.stack([x for _, x, _ in used]),
+        torch.stack([B for _, _, B in used]),
+        failed,
+    )
 
 
 def mean_shape(shapes: torch.Tensor) -> torch.Tensor:
@@ -262,7 +311,37 @@ def check_ensemble_size(size: int, n_knobs: int, option: str = "--center-ensembl
         )
 
 
-def with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None, *, progress=False):
+def ensemble_plan(size: int, data_meta: dict, knob_names, machine_seed=None):
+    r"""The model ring and the error seeds of an ensemble of ``size`` rings for a prior of
+    ``knob_names`` (the checks of :func:`with_center_ensemble`, before any ring is computed).
+
+    Returns:
+        ``(model, seeds)``: the data's ring (its error seed) and :func:`ensemble_seeds`.
+
+    Raises:
+        ValueError: as :func:`with_center_ensemble`.
+    """
+    from pigp_torch.simulation.spec import RingSpec, as_ring_spec
+
+    check_ensemble_size(size, len(knob_names))
+    if data_meta.get("ring"):
+        spec = RingSpec.from_dict(data_meta["ring"])
+    else:  # data written without a ring record: the SPEAR3 ring with the prior's knobs
+        spec = as_ring_spec(None, knobs=tuple(knob_names))
+    seeds = ensemble_seeds(size)
+    for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
+        if seed in seeds:
+            raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
+                             f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
+    model = spec.build(data_meta.get("error_seed", seeds[0]))
+    if list(model.knob_names) != list(knob_names):
+        raise ValueError("the data's ring has other knobs than the prior")
+    return model, seeds
+
+
+def with_center_ensemble(
+    prior, size: int, data_meta: dict, machine_seed=None, *, progress=False, optima=None
+):
     r"""``prior`` with ``center_cov`` and ``peak_shape`` from the optima of ``size`` simulated
     rings (error seeds :func:`ensemble_seeds`) of the data's ring.
 
@@ -275,30 +354,19 @@ def with_center_ensemble(prior, size: int, data_meta: dict, machine_seed=None, *
             with the prior's knobs) and ``error_seed`` (the model ring's).
         machine_seed: error seed of the machine under test, if known.
         progress: print a line and show a progress bar.
+        optima: the :class:`EnsembleOptima` of :func:`ensemble_plan`'s rings when already
+            computed (e.g. on other processes); default ``None``: computed here.
 
     Raises:
         ValueError: ``size`` not above the number of knobs (:func:`check_ensemble_size`), the
             model ring or the machine is among the ensemble seeds, or the data's ring has other
             knobs than the prior.
     """
-    from pigp_torch.simulation.spec import RingSpec, as_ring_spec
-
-    check_ensemble_size(size, len(prior.knob_names))
-
-    if data_meta.get("ring"):
-        spec = RingSpec.from_dict(data_meta["ring"])
-    else:  # data written without a ring record: the SPEAR3 ring with the prior's knobs
-        spec = as_ring_spec(None, knobs=tuple(prior.knob_names))
-    seeds = ensemble_seeds(size)
-    for what, seed in (("model ring", data_meta.get("error_seed")), ("machine", machine_seed)):
-        if seed in seeds:
-            raise ValueError(f"the {what} (error seed {seed}) is among the ensemble seeds "
-                             f"{seeds[0]}-{seeds[-1]}")  # fmt: skip
-    if progress:
-        print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})", flush=True)
-    model = spec.build(data_meta.get("error_seed", seeds[0]))
-    if list(model.knob_names) != list(prior.knob_names):
-        raise ValueError("the data's ring has other knobs than the prior")
-    optima = ensemble_optima(seeds, model=model, progress=progress)
+    model, seeds = ensemble_plan(size, data_meta, prior.knob_names, machine_seed)
+    if optima is None:
+        if progress:
+            print(f"optima of {size} ensemble rings (error seeds {seeds[0]}-{seeds[-1]})",
+                  flush=True)  # fmt: skip
+        optima = ensemble_optima(seeds, model=model, progress=progress)
     provenance = {**prior.provenance, "center_ensemble_seeds": optima.seed_range}
     return dataclasses.replace(prior, **optima.prior_fields(), provenance=provenance)
