@@ -105,6 +105,9 @@ def run_ares_trial(
         method: a registered name or a :class:`MethodSpec`.
         steps: measurements of the run, the start included (default 150).
         noise: screen noise standard deviation (m) on each of the four numbers (default 0).
+            The method's ``RunContext.noise`` is this number in m (``None`` when 0): methods that
+            fit the four numbers (``ares-physics``) use it as their noise; the GP methods on the
+            scalar objective (``ml2``, ``published-bo``) learn their noise from the readings.
         seed: seed of the method and of the screen noise.
         segment: a shared :class:`AresSegment` (default: a new one) for ``model_error="none"``.
         model_error: the wrong-model case of the machine
