@@ -237,15 +237,20 @@ def _steps_to(mae: np.ndarray, threshold: float) -> float:
 
 
 def score_runs(table: pd.DataFrame) -> pd.DataFrame:
-    r"""Per (method, trial): ``model_error`` (the case; ``"none"`` for tables written before the
-    column existed), ``final_mae``, ``best_mae`` (m), ``steps_to_40um``, ``steps_to_20um``
-    (``inf``: never) from a per-step table of one case (module docstring)."""
+    r"""Per (method, trial): ``model_error`` (the case; ``"none"`` for rows written before the
+    column existed, empty in a merged table), ``final_mae``, ``best_mae`` (m),
+    ``steps_to_40um``, ``steps_to_20um`` (``inf``: never) from a per-step table in which each
+    run has one case (module docstring).
+
+    Raises:
+        ValueError: a (method, trial) with rows of several cases.
+    """
     out = []
     for (method, trial), g in table.groupby(["method", "trial"], sort=True):
         g = g.sort_values("step")
         steps = int(g["step"].max())
         run = g.loc[g["step"] < steps, "mae_true"].to_numpy()
-        cases = g["model_error"].unique() if "model_error" in g else ["none"]
+        cases = g["model_error"].fillna("none").unique() if "model_error" in g else ["none"]
         if len(cases) != 1:
             raise ValueError(f"{method} trial {trial}: rows of several model-error cases {cases}")
         row = {

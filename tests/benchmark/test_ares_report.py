@@ -97,6 +97,19 @@ def test_quantiles_per_step_and_old_folders(script, folders):
     assert script.condition_label("quad-cal-10", 5e-6) == "quad-cal-10, noise 5 µm"
 
 
+def test_old_and_new_tables_merge_in_score_runs(folders):
+    """A table merged from a folder written before the model_error column (empty there) and a
+    new one scores every run as the published machine."""
+    from pigp_torch.benchmark.ares import score_runs
+
+    merged = pd.concat(
+        [pd.read_csv(folders / n / "steps.csv") for n in ("old", "free_nm")], ignore_index=True
+    )
+    assert merged["model_error"].isna().any()
+    scores = score_runs(merged)
+    assert len(scores) == 5 and set(scores["model_error"]) == {"none"}
+
+
 def test_common_and_duplicates(script, folders):
     """--common keeps the trials every method ran (10-12 of nm's 10-14); a run given twice
     under one condition is an error."""
