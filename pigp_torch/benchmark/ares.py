@@ -108,7 +108,8 @@ def run_ares_trial(
             The method's ``RunContext.noise`` is this number in m (``None`` when 0): methods that
             fit the four numbers (``ares-physics``) use it as their noise; the GP methods on the
             scalar objective (``ml2``, ``published-bo``) learn their noise from the readings.
-        seed: seed of the method and of the screen noise.
+        seed: seed of the method, of the screen noise and of torch's global generator during
+            the run (restored afterwards), so that a run repeats to the bit.
         segment: a shared :class:`AresSegment` (default: a new one) for ``model_error="none"``.
         model_error: the wrong-model case of the machine
             (:data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`, default ``"none"``).
@@ -133,7 +134,6 @@ def run_ares_trial(
         archive_size=0,
         maximize=machine.maximize,
     )
-    opt = spec.build(ctx)
     rows = []
 
     def record(step: int) -> None:
@@ -151,14 +151,20 @@ def run_ares_trial(
             ]
         )
 
-    for step in range(int(steps)):
-        if step > 0:
-            machine.set(opt.ask())
-        x = machine.get()
-        y = machine.read()
-        _tell(opt, x, y, machine.last_observables)
-        record(step)
-    x_best, _ = opt.best()
+    # Libraries that draw from torch's global generator (BoTorch's hyperparameter fits and
+    # acquisition starts) draw the same numbers for the same seed, so a run repeats to the bit;
+    # the caller's generator state is restored afterwards.
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        opt = spec.build(ctx)
+        for step in range(int(steps)):
+            if step > 0:
+                machine.set(opt.ask())
+            x = machine.get()
+            y = machine.read()
+            _tell(opt, x, y, machine.last_observables)
+            record(step)
+        x_best, _ = opt.best()
     machine.set(x_best)
     machine.read()
     record(int(steps))

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
+import torch
 
 pytest.importorskip("cheetah")
 
@@ -71,3 +73,17 @@ def test_methods_needing_a_ring_prior_are_refused(tmp_path, capsys):
     assert rc == 2
     assert "needs a ring's physics prior" in capsys.readouterr().err
     assert not (tmp_path / "steps.csv").exists()
+
+
+def test_runs_repeat_to_the_bit(trials):
+    """published-bo (BoTorch draws from torch's global generator) repeats to the bit for one
+    seed, whatever the global generator's state before, which the run leaves as it found it."""
+    torch.manual_seed(123)
+    a = run_ares_trial(trials[5], "published-bo", steps=10, seed=5)
+    state = torch.random.get_rng_state()
+    torch.manual_seed(456)
+    b = run_ares_trial(trials[5], "published-bo", steps=10, seed=5)
+    pd.testing.assert_frame_equal(a, b)
+    torch.manual_seed(123)
+    run_ares_trial(trials[5], "published-bo", steps=10, seed=5)
+    assert torch.equal(torch.random.get_rng_state(), state)
