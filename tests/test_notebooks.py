@@ -25,6 +25,7 @@ def test_notebook_executes(path, monkeypatch):
         "physics_prior": "relative Frobenius",
         "compare_optimizers": "nelder-mead",
         "xopt_example": "max relative difference",
+        "ares_ea": "drift check: max deviation",
     }
     assert expected.get(path.stem, "") in text
 

@@ -16,6 +16,12 @@ the same for the noise-free beam at that setting (equal to ``mae`` without noise
   step 0), ``inf`` when none; and the share of trials that reach it.
 
 Each score is summarized per method by the median and the interquartile range over trials.
+
+A wrong-model case (``model_error``, :data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`)
+changes the simulated machine only (its incoming beam, misalignments or quadrupole calibration;
+the methods' models keep the published ranges); every row names it in the ``model_error`` column.
+Methods that need a ring's physics prior (``needs_prior``) or are built for another task cannot
+run here and are refused before any run starts.
 """
 
 from __future__ import annotations
@@ -32,11 +38,20 @@ from pigp_torch.machine.ares import AresMachine
 from pigp_torch.methods import METHODS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.methods.ares import ares_objective_for
 from pigp_torch.simulation.ares import OBSERVABLE_NAMES, AresSegment, AresTrial
+from pigp_torch.simulation.ares_cases import case_machine_parts, check_case
 
 #: MAE thresholds of the published comparison (m).
 THRESHOLDS_M: tuple[float, ...] = (40e-6, 20e-6)
 #: Columns of the per-step table.
-STEP_COLUMNS: tuple[str, ...] = ("trial", "method", "step", *OBSERVABLE_NAMES, "mae", "mae_true")
+STEP_COLUMNS: tuple[str, ...] = (
+    "trial",
+    "method",
+    "step",
+    *OBSERVABLE_NAMES,
+    "mae",
+    "mae_true",
+    "model_error",
+)
 #: The recipes run when no method is named (the product's default ARES method first, if any).
 DEFAULT_ARES_METHODS: tuple[str, ...] = ("ares-physics", "published-bo", "published-nm")
 
@@ -44,6 +59,25 @@ DEFAULT_ARES_METHODS: tuple[str, ...] = ("ares-physics", "published-bo", "publis
 def default_ares_methods() -> list[str]:
     """The registered methods of :data:`DEFAULT_ARES_METHODS`."""
     return [m for m in DEFAULT_ARES_METHODS if m in METHODS]
+
+
+def check_ares_methods(methods: Sequence[str | MethodSpec]) -> list[MethodSpec]:
+    """The specs of ``methods`` if each can run on the ARES machine: built for it or for any
+    machine, and needing no ring's physics prior (the ARES machine has none).
+
+    Raises:
+        ValueError: an unknown method, or one that cannot run here (one line).
+    """
+    specs = resolve_methods(list(methods))
+    for spec in specs:
+        if spec.needs_prior:
+            raise ValueError(
+                f"method {spec.name!r} needs a ring's physics prior, which the ARES task has "
+                "not; on ARES use ares-physics, ml2, published-bo, published-nm, nelder-mead"
+            )
+        if spec.machine not in (None, "ares-ea"):
+            raise ValueError(f"method {spec.name!r} is built for {spec.machine!r}, not ares-ea")
+    return specs
 
 
 def _tell(opt, x, y: float, observables: torch.Tensor) -> None:
@@ -61,6 +95,7 @@ def run_ares_trial(
     noise: float = 0.0,
     seed: int = 0,
     segment: AresSegment | None = None,
+    model_error: str = "none",
 ) -> pd.DataFrame:
     r"""One trial tuned by one method: ``steps + 1`` rows of :data:`STEP_COLUMNS` (module
     docstring).
@@ -70,17 +105,27 @@ def run_ares_trial(
         method: a registered name or a :class:`MethodSpec`.
         steps: measurements of the run, the start included (default 150).
         noise: screen noise standard deviation (m) on each of the four numbers (default 0).
-        seed: seed of the method and of the screen noise.
-        segment: a shared :class:`AresSegment` (default: a new one).
+            The method's ``RunContext.noise`` is this number in m (``None`` when 0): methods that
+            fit the four numbers (``ares-physics``) use it as their noise; the GP methods on the
+            scalar objective (``ml2``, ``published-bo``) learn their noise from the readings.
+        seed: seed of the method, of the screen noise and of torch's global generator during
+            the run (restored afterwards), so that a run repeats to the bit.
+        segment: a shared :class:`AresSegment` (default: a new one) for ``model_error="none"``.
+        model_error: the wrong-model case of the machine
+            (:data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`, default ``"none"``).
 
     Raises:
-        ValueError: ``steps < 1``.
+        ValueError: ``steps < 1``, an unknown case, or a method that cannot run on ARES.
     """
     if int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    (spec,) = resolve_methods([method])
+    (spec,) = check_ares_methods([method])
+    if check_case(model_error) != "none":
+        trial_m, segment = case_machine_parts(trial, model_error)
+    else:
+        trial_m = trial
     machine = AresMachine(
-        trial, objective=ares_objective_for(spec.name), noise=noise, seed=seed, segment=segment
+        trial_m, objective=ares_objective_for(spec.name), noise=noise, seed=seed, segment=segment
     )
     ctx = RunContext(
         machine=machine,
@@ -89,7 +134,6 @@ def run_ares_trial(
         archive_size=0,
         maximize=machine.maximize,
     )
-    opt = spec.build(ctx)
     rows = []
 
     def record(step: int) -> None:
@@ -103,17 +147,24 @@ def run_ares_trial(
                 *obs.tolist(),
                 float(machine.mae(obs)),
                 float(machine.mae(true)),
+                model_error,
             ]
         )
 
-    for step in range(int(steps)):
-        if step > 0:
-            machine.set(opt.ask())
-        x = machine.get()
-        y = machine.read()
-        _tell(opt, x, y, machine.last_observables)
-        record(step)
-    x_best, _ = opt.best()
+    # Libraries that draw from torch's global generator (BoTorch's hyperparameter fits and
+    # acquisition starts) draw the same numbers for the same seed, so a run repeats to the bit;
+    # the caller's generator state is restored afterwards.
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        opt = spec.build(ctx)
+        for step in range(int(steps)):
+            if step > 0:
+                machine.set(opt.ask())
+            x = machine.get()
+            y = machine.read()
+            _tell(opt, x, y, machine.last_observables)
+            record(step)
+        x_best, _ = opt.best()
     machine.set(x_best)
     machine.read()
     record(int(steps))
@@ -121,10 +172,10 @@ def run_ares_trial(
 
 
 def _job(args) -> pd.DataFrame:
-    trial, method, steps, noise, seed = args
+    trial, method, steps, noise, seed, model_error = args
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    df = run_ares_trial(trial, method, steps=steps, noise=noise, seed=seed)
+    df = run_ares_trial(trial, method, steps=steps, noise=noise, seed=seed, model_error=model_error)
     df.attrs["seconds"] = time.perf_counter() - t0
     return df
 
@@ -138,6 +189,7 @@ def run_ares_benchmark(
     seed: int = 0,
     workers: int = 1,
     progress: Callable[[str], None] | None = None,
+    model_error: str = "none",
 ) -> pd.DataFrame:
     r"""Every trial × method (:func:`run_ares_trial`, the method's seed = ``seed`` + the trial's
     number); the concatenated per-step table, sorted by method, trial and step.
@@ -145,9 +197,18 @@ def run_ares_benchmark(
     Args:
         workers: processes (1: in this process).
         progress: called with one line per finished run.
+        model_error: the machine's wrong-model case (:func:`run_ares_trial`).
+
+    Raises:
+        ValueError: a method that cannot run on ARES or an unknown case, before any run.
     """
-    names = [s.name for s in resolve_methods(list(methods))]
-    jobs = [(t, m, int(steps), float(noise), int(seed) + t.index) for t in trials for m in names]
+    names = [s.name for s in check_ares_methods(list(methods))]
+    check_case(model_error)
+    jobs = [
+        (t, m, int(steps), float(noise), int(seed) + t.index, model_error)
+        for t in trials
+        for m in names
+    ]
     frames = []
 
     def report(df: pd.DataFrame) -> None:
@@ -182,16 +243,26 @@ def _steps_to(mae: np.ndarray, threshold: float) -> float:
 
 
 def score_runs(table: pd.DataFrame) -> pd.DataFrame:
-    r"""Per (method, trial): ``final_mae``, ``best_mae`` (m), ``steps_to_40um``,
-    ``steps_to_20um`` (``inf``: never) from a per-step table (module docstring)."""
+    r"""Per (method, trial): ``model_error`` (the case; ``"none"`` for rows written before the
+    column existed, empty in a merged table), ``final_mae``, ``best_mae`` (m),
+    ``steps_to_40um``, ``steps_to_20um`` (``inf``: never) from a per-step table in which each
+    run has one case (module docstring).
+
+    Raises:
+        ValueError: a (method, trial) with rows of several cases.
+    """
     out = []
     for (method, trial), g in table.groupby(["method", "trial"], sort=True):
         g = g.sort_values("step")
         steps = int(g["step"].max())
         run = g.loc[g["step"] < steps, "mae_true"].to_numpy()
+        cases = g["model_error"].fillna("none").unique() if "model_error" in g else ["none"]
+        if len(cases) != 1:
+            raise ValueError(f"{method} trial {trial}: rows of several model-error cases {cases}")
         row = {
             "method": method,
             "trial": int(trial),
+            "model_error": str(cases[0]),
             "final_mae": float(g.loc[g["step"] == steps, "mae_true"].iloc[0]),
             "best_mae": float(run.min()),
         }
@@ -203,10 +274,12 @@ def score_runs(table: pd.DataFrame) -> pd.DataFrame:
 
 def summarize_scores(scores: pd.DataFrame) -> pd.DataFrame:
     r"""Per method: median, 25 % and 75 % quantiles of final and best MAE (µm) and of the steps
-    to 40 / 20 µm (``inf`` counts as not reached), and the share of trials reaching each."""
+    to 40 / 20 µm (``inf`` counts as not reached), and the share of trials reaching each; the
+    ``model_error`` case(s) of its runs (joined by ``+`` if several)."""
     rows = []
     for method, g in scores.groupby("method", sort=False):
-        row = {"method": method, "trials": len(g)}
+        cases = sorted(g["model_error"].unique()) if "model_error" in g else ["none"]
+        row = {"method": method, "trials": len(g), "model_error": "+".join(cases)}
         for col in ("final_mae", "best_mae"):
             q = np.quantile(g[col].to_numpy() * 1e6, [0.25, 0.5, 0.75])
             row.update({f"{col}_um_q25": q[0], f"{col}_um_median": q[1], f"{col}_um_q75": q[2]})

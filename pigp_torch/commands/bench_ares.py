@@ -6,6 +6,16 @@ import argparse
 import sys
 from pathlib import Path
 
+#: The wrong-model cases as ``--help`` states them (torch-free, so that ``pigp --help`` stays
+#: fast; the cases themselves are :mod:`pigp_torch.simulation.ares_cases`, which a test keeps in
+#: step with this text).
+MODEL_ERROR_HELP: dict[str, str] = {
+    "none": "the published trial",
+    "beam-outside": "incoming centroids, sizes and divergences 1.25-2x the prior range's limits",
+    "misalign-3x": "misalignments 3x the trial's (+-1.5 mm, 3x the prior range)",
+    "quad-cal-10": "quadrupoles act with 1.10 x the set k1",
+}
+
 
 def _nonnegative_float(text: str) -> float:
     try:
@@ -18,9 +28,12 @@ def _nonnegative_float(text: str) -> float:
 
 
 def cmd_bench_ares(args) -> int:
+    import json
+
     import torch
 
     from pigp_torch.benchmark.ares import (
+        check_ares_methods,
         default_ares_methods,
         format_summary,
         plot_mae_vs_step,
@@ -29,6 +42,9 @@ def cmd_bench_ares(args) -> int:
         summarize_scores,
     )
     from pigp_torch.simulation.ares import load_trials, parse_trial_ids
+    from pigp_torch.simulation.ares_cases import CASE_TEXT, check_case
+
+    check_case(args.model_error)
 
     torch.set_num_threads(1)
     if args.steps < 1:
@@ -41,7 +57,7 @@ def cmd_bench_ares(args) -> int:
         missing = [i for i in ids if i not in trials]
         if missing:
             raise ValueError(f"trial ids not in {args.trials or 'the shipped trials'}: {missing}")
-    methods = args.methods or default_ares_methods()
+    methods = [s.name for s in check_ares_methods(args.methods or default_ares_methods())]
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -57,6 +73,7 @@ def cmd_bench_ares(args) -> int:
         seed=args.seed,
         workers=args.workers,
         progress=progress,
+        model_error=args.model_error,
     )
     table.to_csv(out / "steps.csv", index=False)
     scores = score_runs(table)
@@ -64,12 +81,24 @@ def cmd_bench_ares(args) -> int:
     summary = summarize_scores(scores)
     summary.to_csv(out / "summary.csv", index=False)
     plot_mae_vs_step(table, out / "mae_vs_step.png")
+    run = {
+        "trials": args.trials or "shipped trials_000-149.yaml",
+        "trial_ids": ids,
+        "methods": methods,
+        "steps": args.steps,
+        "noise_m": args.noise,
+        "seed": args.seed,
+        "model_error": args.model_error,
+        "model_error_text": CASE_TEXT[args.model_error],
+    }
+    (out / "run.json").write_text(json.dumps(run, indent=1) + "\n")
     print(
         f"ARES-EA: {len(ids)} trials, {args.steps} steps, screen noise "
-        f"{args.noise * 1e6:g} um; MAE noise-free, after setting back to the best"
+        f"{args.noise * 1e6:g} um, machine: {args.model_error} ({CASE_TEXT[args.model_error]}); "
+        "MAE noise-free, after setting back to the best"
     )
     print(format_summary(summary))
-    print(f"wrote {out / 'steps.csv'}, scores.csv, summary.csv, mae_vs_step.png")
+    print(f"wrote {out / 'steps.csv'}, scores.csv, summary.csv, run.json, mae_vs_step.png")
     return 0
 
 
@@ -107,6 +136,15 @@ def register(sub, bench) -> None:
         type=_nonnegative_float,
         default=0.0,
         help="screen noise: standard deviation of each beam number in m (default 0)",
+    )
+    b.add_argument(
+        "--model-error",
+        default="none",
+        metavar="CASE",
+        help="the simulated machine departs from the model (the methods' models keep the "
+        "published ranges): "
+        + "; ".join(f"{k}: {v}" for k, v in MODEL_ERROR_HELP.items())
+        + " (default none)",
     )
     b.add_argument("--seed", type=int, default=0, help="base seed (run seed = seed + trial)")
     b.add_argument("--workers", type=int, default=1, help="processes (default 1)")

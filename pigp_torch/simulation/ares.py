@@ -234,7 +234,11 @@ class AresSegment:
         el["AREAMQZM1"].misalignment = m[..., 0:2]
         el["AREAMQZM2"].misalignment = m[..., 2:4]
         el["AREAMQZM3"].misalignment = m[..., 4:6]
-        el["AREABSCR1"].misalignment = m[..., 6:8]
+        # The screen's own offset is subtracted from the read centroid here, as Cheetah's Screen
+        # does for a ParameterBeam (the same subtraction, so the same numbers), because its
+        # Screen broadcasts a batched offset against the 7-vector of moments instead of the
+        # batch and fails for a batch of screen offsets.
+        el["AREABSCR1"].misalignment = torch.zeros(2, dtype=self.dtype)
         # Cheetah caches each element's transfer map under the id() and version of its tensors;
         # the views assigned above are new objects whose ids Python may reuse from freed ones, and
         # forward-mode tangents do not enter the key. Dropping the caches makes every call
@@ -243,7 +247,8 @@ class AresSegment:
             module.__dict__.pop("_cache", None)
         self.segment.track(self.incoming_beam(incoming, energy))
         read = el["AREABSCR1"].get_read_beam()
-        return torch.stack([read.mu_x, read.sigma_x, read.mu_y, read.sigma_y], dim=-1)
+        mu_x, mu_y = read.mu_x - m[..., 6], read.mu_y - m[..., 7]
+        return torch.stack(torch.broadcast_tensors(mu_x, read.sigma_x, mu_y, read.sigma_y), -1)
 
     def on_screen(self, observables: torch.Tensor) -> torch.Tensor:
         r"""``...`` bool: the beam centre is on the screen (:math:`|\mu| <` half size)."""

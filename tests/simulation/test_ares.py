@@ -164,6 +164,26 @@ def test_batched_equals_loop(seg, trials):
     torch.testing.assert_close(batched, looped, rtol=1e-12, atol=1e-18)
 
 
+def test_batched_unknowns_equal_loop(seg, trials):
+    """A batch of unknowns (50 incoming beams and misalignments, the screen's included) at one
+    setting gives the same four numbers as one call per draw; the screen's offset moves the read
+    centroid by exactly its size."""
+    t = trials[4]
+    gen = torch.Generator().manual_seed(1)
+    inc = t.incoming * (1 + 0.2 * torch.rand(50, 11, generator=gen, dtype=D))
+    mis = 5e-4 * (2 * torch.rand(50, 8, generator=gen, dtype=D) - 1)
+    x = torch.tensor(START_SETTING, dtype=D)
+    batched = seg.observe(x, inc, mis)
+    looped = torch.stack([seg.observe(x, i, m) for i, m in zip(inc, mis, strict=True)])
+    assert batched.shape == (50, 4)
+    torch.testing.assert_close(batched, looped, rtol=1e-12, atol=1e-18)
+    shifted = mis.clone()
+    shifted[:, 6:8] += 1e-4
+    diff = seg.observe(x, inc, shifted) - batched
+    torch.testing.assert_close(diff[:, [0, 2]], torch.full((50, 2), -1e-4, dtype=D))
+    assert float(diff[:, [1, 3]].abs().max()) == 0.0
+
+
 def test_observe_is_differentiable(seg, trials):
     """Autograd gradients of the four numbers in the knobs match central differences."""
     t = trials[3]
