@@ -147,8 +147,19 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     )
     ens_key = ensemble_key(a.model_seed, a.center_ensemble, names)
     ens_hit = None if cache is None or not want_ensemble else cache.load_ensemble(ens_key)
+    unit = model_ring.knob_units
+    specs = {m: reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min")
+             for m in a.methods}  # fmt: skip
     with job_pool(a.workers) as pool:
         parallel = not isinstance(pool, InlineExecutor)
+        # a method that needs no prior (ML-II) starts at once, on a spawned process
+        early = [m for m in a.methods if not specs[m].needs_prior]
+        if early:
+            print(f"[4/4] {', '.join(early)} needs no prior: its run starts now"
+                  + (" (alongside the stages below)" if parallel else ""), flush=True)  # fmt: skip
+        runs = dict(
+            zip(early, spread(pool, _method_jobs(a, early, specs, None), set()), strict=True)
+        )
         data = None
         if hit is None:
             t0 = time.perf_counter()
@@ -161,47 +172,58 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         t_train = time.perf_counter()
         jobs = [(_train_member, (data, k, a.target, not parallel), {})
                 for k in range(a.members if hit is None else 0)]  # fmt: skip
-        # the caller trains every a.workers-th network; the others and the rings go to the pool
-        local = set(range(0, len(jobs), a.workers))
+        # the caller trains every a.workers-th network (all of them while a spawned process runs
+        # an early method); the others and the rings go to the pool
+        local = set(range(0, len(jobs), 1 if early else a.workers))
         if want_ensemble and ens_hit is None:
-            ring_model, seeds = ensemble_plan(
-                a.center_ensemble, {"error_seed": a.model_seed}, names, a.machine_seed
-            )
-            if parallel:
-                print(f"      and, alongside, the optima of {len(seeds)} ensemble rings",
-                      flush=True)  # fmt: skip
-            # the rings in one part per spawned process (and one for the caller, if it has no
-            # network to train)
-            n_parts = 1 if not parallel else a.workers - (1 if jobs else 0)
-            part = -(-len(seeds) // n_parts)
-            if not jobs and parallel:
-                local = {0}
-            jobs += [(ring_optima, (seeds[i : i + part],), {"model": ring_model, "progress": True,
-                      "first_index": i, "total": len(seeds)})
-                     for i in range(0, len(seeds), part)]  # fmt: skip
+            jobs, local = _ring_jobs(a, names, jobs, local, parallel)
         done = spread(pool, jobs, local)
         members = done[: a.members] if hit is None else []
         rings = done[len(members) :]
         prior = _surrogate_prior(a, hit, members, model_ring, cache, key, t_train)
         if want_ensemble:
             prior = _with_ensemble(a, prior, ens_hit, rings, cache, ens_key)
-        f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
-        print(f"[4/4] {', '.join(a.methods)} on the benchmark's machine {a.machine_seed}, "
-              f"{a.budget} evaluations each: coupling-error seed {a.machine_seed} with its own "
-              f"loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
-              f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it "
-              f"with machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}"
-              + (f"; {a.workers} runs at a time" if parallel else ""), flush=True)  # fmt: skip
+        late = [m for m in a.methods if m not in runs]
+        _print_machine(a, model_ring, late, parallel)
         t0 = time.perf_counter()
-        unit = model_ring.knob_units
-        specs = [reporting_spec(METHODS[m], a.budget, names, unit=unit, objective_unit="mA/min")
-                 for m in a.methods]  # fmt: skip
-        # the caller runs the last method (the baselines come last: ML-II is the slowest)
-        jobs = [(_run_method, (s, a.machine_seed, prior, a.budget), {}) for s in specs]
-        runs = spread(pool, jobs, {len(jobs) - 1})
-        table = pd.concat([r.result() for r in runs], ignore_index=True)
+        # the caller runs the last method (the baselines come last: they are the slowest)
+        runs.update(zip(late, spread(pool, _method_jobs(a, late, specs, prior), {len(late) - 1}),
+                        strict=True))  # fmt: skip
+        table = pd.concat([runs[m].result() for m in a.methods], ignore_index=True)
     print(f"      runs done ({_elapsed(t0)}); the demo took {_elapsed(t_start)}", flush=True)
     return table, prior
+
+
+def _method_jobs(a: DemoSettings, methods, specs, prior) -> list:
+    return [(_run_method, (specs[m], a.machine_seed, prior, a.budget), {}) for m in methods]
+
+
+def _ring_jobs(a: DemoSettings, names, jobs, local, parallel):
+    """``jobs`` and ``local`` with the ensemble rings' jobs: one part per spawned process, and
+    one for the caller if it has no network to train."""
+    ring_model, seeds = ensemble_plan(
+        a.center_ensemble, {"error_seed": a.model_seed}, names, a.machine_seed
+    )
+    if parallel:
+        print(f"      and, alongside, the optima of {len(seeds)} ensemble rings", flush=True)
+    n_parts = 1 if not parallel else a.workers - (1 if jobs else 0)
+    part = -(-len(seeds) // n_parts)
+    if not jobs and parallel:
+        local = {0}
+    ring_jobs = [(ring_optima, (seeds[i : i + part],), {"model": ring_model, "progress": True,
+                  "first_index": i, "total": len(seeds)})
+                 for i in range(0, len(seeds), part)]  # fmt: skip
+    return jobs + ring_jobs, local
+
+
+def _print_machine(a: DemoSettings, model_ring, methods, parallel: bool) -> None:
+    f_inf, g = machine_loss_map(a.machine_seed, model_ring.loss_rate_map)
+    print(f"[4/4] {', '.join(methods) or 'all methods started'} on the benchmark's machine "
+          f"{a.machine_seed}, {a.budget} evaluations each: coupling-error seed {a.machine_seed} "
+          f"with its own loss-rate map (background {f_inf:.3f} mA/min, Touschek scale "
+          f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it with "
+          f"machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}"
+          + (f"; {a.workers} runs at a time" if parallel else ""), flush=True)  # fmt: skip
 
 
 def _surrogate_prior(a, hit, members, model_ring, cache, key, t0):

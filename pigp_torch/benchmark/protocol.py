@@ -144,7 +144,7 @@ def model_prior(
 def run_one(
     spec: MethodSpec,
     machine_seed: int,
-    prior: PhysicsPrior,
+    prior: PhysicsPrior | None,
     *,
     budget: int,
     noise: float = NOISE,
@@ -164,13 +164,19 @@ def run_one(
     and GPyTorch read it internally and ``import xopt`` changes it process-wide, so without this
     the same run gave different proposals in a process that had imported Xopt.
 
+    ``prior`` may be ``None`` for a method that needs none (``spec.needs_prior`` false, e.g. ML-II),
+    so that it can run before the prior is computed.
+
     Raises:
-        ValueError: ``prior`` is for other knobs than ``ring``'s (names must match in order).
+        ValueError: ``prior`` is for other knobs than ``ring``'s (names must match in order), or
+            ``None`` for a method that needs one.
     """
+    if prior is None and spec.needs_prior:
+        raise ValueError(f"method {spec.name} needs a physics prior")
     spec_ring = as_ring_spec(ring, knobs=knobs)
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
         sim = benchmark_ring(int(machine_seed), spec_ring, machine_maps)
-        if list(prior.knob_names) != list(sim.knob_names):
+        if prior is not None and list(prior.knob_names) != list(sim.knob_names):
             raise ValueError(
                 f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
                 f"{sim.dim} knobs {sim.knob_names[:3]}...: compute the prior "
