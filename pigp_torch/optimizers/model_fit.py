@@ -26,10 +26,13 @@ the misalignments), each step
    \hat\theta))\|^2` when ``residual`` :math:`\rho` is given (e.g. observables minus target: a
    reachable target is a root, found in a few Gauss–Newton steps); the ``n_polish`` best end points
    are then polished by L-BFGS-B on the goal itself (``maxiter`` iterations, stopped at a change
-   of ``search_ftol`` noise units), and the best of all end points is asked. When the fit has not
+   of ``search_ftol`` noise units; skipped when the best goal is at most ``polish_tol`` noise
+   standard deviations), and the best of all end points is asked. When the fit has not
    moved since the last search (the prediction at the previous ask changed by at most
    ``reuse_tol`` noise standard deviations), the previous ask lies in the region, and the region
-   has not grown, the previous ask is asked again without a search.
+   has not grown, the previous ask is asked again without a search; when it moved by at most
+   ``local_tol`` noise standard deviations (default 0: never), the search starts from the
+   previous ask and the ``n_local`` best candidates only.
 
 The region grows (:math:`r \to \min(2r, r_{max})`) after a measurement better than the best
 before it or one the model predicted (every observable within ``agree_sd`` noise standard
@@ -84,12 +87,16 @@ class FittedModelOptimizer(AskTellOptimizer):
             optimum (e.g. observables minus target; default ``None``: L-BFGS-B on the goal
             only).
         ls_iter: Levenberg–Marquardt iterations of the ask's least squares (default 30).
-        n_polish: least-squares end points polished on the goal (default 2).
+        n_polish: least-squares end points polished on the goal (default 2), unless the best
+            one's goal is at most ``polish_tol`` noise sd (default 0: always polished).
         fit_cost_tol: the fit stops when its cost drops by less (squared noise units; 1e-3).
         reuse_tol: the fit "has not moved" when the prediction at the previous ask changed by
             at most this many noise standard deviations (default 0.05).
         agree_sd: a reading agrees with the model when every observable lies within this many
             noise standard deviations of the prediction (default 3).
+        local_tol, n_local: a fit that moved by at most ``local_tol`` noise sd (and more than
+            ``reuse_tol``) is searched from the previous ask and the ``n_local`` best candidates
+            only (default 0, 2: off; cheaper with a noisy screen, slightly worse optima).
         search_ftol: L-BFGS-B stopping change of the summed goal in noise units (1e-6).
         best_from: ``"readings"`` (default) or ``"model"`` (module docstring).
         seed: seed of the Sobol candidates.
@@ -126,9 +133,12 @@ class FittedModelOptimizer(AskTellOptimizer):
         residual: Callable[[torch.Tensor], torch.Tensor] | None = None,
         ls_iter: int = 30,
         n_polish: int = 2,
+        polish_tol: float = 0.0,
         fit_cost_tol: float = 1e-3,
         agree_sd: float = 3.0,
         reuse_tol: float = 0.05,
+        local_tol: float = 0.0,
+        n_local: int = 2,
         search_ftol: float = 1e-6,
         best_from: str = "readings",
         seed: int = 0,
@@ -161,16 +171,20 @@ class FittedModelOptimizer(AskTellOptimizer):
         self.residual = residual
         self.ls_iter = int(ls_iter)
         self.n_polish = int(n_polish)
+        self.polish_tol = float(polish_tol)
         self.fit_cost_tol = float(fit_cost_tol)
         self.agree_sd = float(agree_sd)
         self.last_misfit = float("nan")
         self.reuse_tol = float(reuse_tol)
+        self.local_tol = float(local_tol)
+        self.n_local = int(n_local)
         self.search_ftol = float(search_ftol)
         self.best_from = best_from
         self.n_searches = 0
         self.n_reused = 0
         self._search_theta: torch.Tensor | None = None
         self._fit_theta: torch.Tensor | None = None
+        self._best_cache: tuple | None = None
         self._search_trust = 0.0
         self._unique_x: list[torch.Tensor] = []
         self._unique_sum: list[torch.Tensor] = []
@@ -274,10 +288,13 @@ class FittedModelOptimizer(AskTellOptimizer):
         screen one lucky reading does not decide), with the ``y`` read there."""
         if self.best_from == "readings" or self._fit_theta is None:
             return super().best()
-        with torch.no_grad():
-            g = self.goal(self.model(torch.stack(self.X), self._fit_theta))
-        g = torch.where(torch.isfinite(g), g, torch.full_like(g, torch.inf))
-        i = int(g.argmin())
+        cache = self._best_cache
+        if cache is None or cache[0] != self.n_told or cache[1] is not self._fit_theta:
+            with torch.no_grad():
+                g = self.goal(self.model(torch.stack(self.X), self._fit_theta))
+            g = torch.where(torch.isfinite(g), g, torch.full_like(g, torch.inf))
+            self._best_cache = (self.n_told, self._fit_theta, int(g.argmin()))
+        i = self._best_cache[2]
         return self.X[i].clone(), self.Y[i]
 
     def predict(self, X: torch.Tensor) -> torch.Tensor:
@@ -292,15 +309,15 @@ class FittedModelOptimizer(AskTellOptimizer):
         half = self.trust * (hi - lo)
         return torch.stack([torch.maximum(lo, x_best - half), torch.minimum(hi, x_best + half)])
 
-    def _fit_moved(self, theta: torch.Tensor) -> bool:
-        r"""Whether the fit changed the model's prediction at the last ask by more than
-        ``reuse_tol`` noise standard deviations since the last search (module docstring)."""
+    def _fit_change(self, theta: torch.Tensor) -> float:
+        r"""The largest change of the model's prediction at the last ask since the last search,
+        in noise standard deviations (``inf`` before the first search)."""
         if self._last_ask is None or self._search_theta is None:
-            return True
+            return float("inf")
         with torch.no_grad():
             x = self._last_ask[None]
             change = self.model(x, theta) - self.model(x, self._search_theta)
-        return bool((change.abs() > self.reuse_tol * self.obs_sd).any())
+        return float(change.abs().max()) / self.obs_sd
 
     def ask(self) -> torch.Tensor:
         """The fitted model's optimum of the goal inside the trust region (``d``)."""
@@ -312,7 +329,9 @@ class FittedModelOptimizer(AskTellOptimizer):
         theta = self.theta.detach()
         last = self._last_ask
         inside = last is not None and bool(((last >= box[0]) & (last <= box[1])).all())
-        if inside and self.trust <= self._search_trust and not self._fit_moved(theta):
+        same_region = inside and self.trust <= self._search_trust
+        change = self._fit_change(theta) if same_region else float("inf")
+        if change <= self.reuse_tol:
             # The fit did not move: the previous optimum is still the model's optimum.
             self.n_reused += 1
             return last.clone()
@@ -328,7 +347,10 @@ class FittedModelOptimizer(AskTellOptimizer):
         order = torch.argsort(values)
         # The n_refine best candidates are refined together (one batched evaluation per
         # iteration); the previous ask inside the box is one more start (a warm start).
-        starts = Z[order[: self.n_refine]]
+        # A fit that moved by less than local_tol noise sd moves the optimum little: the
+        # previous ask and the n_local best candidates suffice.
+        n_starts = self.n_local if change <= self.local_tol else self.n_refine
+        starts = Z[order[:n_starts]]
         if inside:
             starts = torch.cat([Ze[-1:], starts])
 
@@ -349,7 +371,10 @@ class FittedModelOptimizer(AskTellOptimizer):
             with torch.no_grad():
                 ls_values = goal(box[0] + width * starts)
             ls_starts = starts[torch.argsort(ls_values)]
-            starts = ls_starts[: self.n_polish]
+            # Polish (L-BFGS-B on the goal itself) only where least squares left the goal
+            # above polish_tol noise sd: a target it reached needs no more.
+            reached = bool(ls_values.min() <= self.polish_tol * self.obs_sd)
+            starts = ls_starts[: 0 if reached else self.n_polish]
         X, v = box[0] + width * starts[:0], values[:0]
         if starts.shape[0]:
             X, v = minimize_in_box(
