@@ -156,8 +156,9 @@ def build_ares_physics(
     **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
-    setting the fitted model's optimum for the machine's target inside a trust region
-    (:class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer` of
+    setting the fitted model's optimum for the machine's target inside a trust region, and a
+    model-free search once the model stops explaining the readings
+    (:class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer` of
     :func:`ares_machine_model`).
 
     Args:
@@ -167,9 +168,9 @@ def build_ares_physics(
         best_from: how the best setting is chosen (``"readings"`` or ``"model"``, see
             :class:`FittedModelOptimizer`); default ``"model"`` with a stated screen noise
             (``ctx.noise > 0``), else ``"readings"``.
-        options: :class:`FittedModelOptimizer` options.
+        options: :class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer` options.
     """
-    from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+    from pigp_torch.optimizers.model_check import CheckedModelOptimizer
 
     machine = ctx.machine
     target = getattr(machine, "target", None)
@@ -179,7 +180,7 @@ def build_ares_physics(
         obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
     if best_from is None:
         best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
-    return FittedModelOptimizer.from_machine_model(
+    return CheckedModelOptimizer.from_machine_model(
         ares_machine_model(target),
         bounds=ctx.bounds,
         obs_sd=obs_sd,
