@@ -97,6 +97,45 @@ def ares_model_parts(segment=None, lattice=None):
     return model, center, half
 
 
+#: Units of the unknowns of :func:`ares_machine_model` (:data:`ARES_FITTED_INCOMING`, then the
+#: eight misalignments).
+ARES_FITTED_UNITS: tuple[str, ...] = ("m", "rad", "m", "rad", "m", "rad", "m", "rad", *("m",) * 8)
+
+
+def ares_machine_model(target, segment=None, lattice=None):
+    r"""The ARES-EA segment as a :class:`~pigp_torch.prior.machine_model.MachineModel`: the five
+    knobs (bidirectional bounds), the four beam numbers on the screen (m), the 16 unknowns of
+    :func:`ares_model_parts` with the ranges the trials were drawn from, and the goal
+    :func:`smooth_mae` to ``target`` (``4`` numbers, m) with residual ``o - target``."""
+    from pigp_torch.prior.machine_model import MachineModel
+    from pigp_torch.simulation.ares import (
+        KNOB_NAMES,
+        KNOB_UNITS,
+        MISALIGNMENT_NAMES,
+        OBSERVABLE_NAMES,
+    )
+
+    model, center, half = ares_model_parts(segment, lattice)
+    t = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
+    if t.shape != (4,):
+        raise ValueError(f"the ARES target needs 4 numbers (m), got {tuple(t.shape)}")
+    return MachineModel(
+        name="ares-ea",
+        knob_names=KNOB_NAMES,
+        knob_units=KNOB_UNITS,
+        bounds=knob_bounds(lattice=lattice),
+        observable_names=OBSERVABLE_NAMES,
+        observable_units=("m",) * 4,
+        unknown_names=(*ARES_FITTED_INCOMING, *MISALIGNMENT_NAMES),
+        unknown_units=ARES_FITTED_UNITS,
+        unknown_center=center,
+        unknown_half_width=half,
+        observe=model,
+        goal=smooth_mae(t),
+        residual=lambda obs: obs - t,
+    )
+
+
 def smooth_mae(target: torch.Tensor, eps: float = 0.5e-6):
     r"""``N x 4 -> N``: :math:`\tfrac14 \sum_i \sqrt{(o_i - t_i)^2 + \epsilon^2}` (m), the mean
     absolute error smoothed below :math:`\epsilon` (default 0.5 µm) so that it has gradients."""
@@ -109,34 +148,43 @@ def smooth_mae(target: torch.Tensor, eps: float = 0.5e-6):
 
 
 def build_ares_physics(
-    ctx: RunContext, *, obs_sd: float | None = None, obs_sd_floor: float = 1e-6, **options
+    ctx: RunContext,
+    *,
+    obs_sd: float | None = None,
+    obs_sd_floor: float = 1e-6,
+    best_from: str | None = None,
+    **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
-    setting the fitted model's optimum for the machine's target inside a trust region
-    (:class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`).
+    setting the fitted model's optimum for the machine's target inside a trust region, and a
+    model-free search once the model stops explaining the readings
+    (:class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer` of
+    :func:`ares_machine_model`).
 
     Args:
         obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
             (``ctx.noise``: the screen noise in m, ``None``: unknown).
         obs_sd_floor: the smallest noise assumed (default 1 µm).
-        options: :class:`FittedModelOptimizer` options.
+        best_from: how the best setting is chosen (``"readings"`` or ``"model"``, see
+            :class:`FittedModelOptimizer`); default ``"model"`` with a stated screen noise
+            (``ctx.noise > 0``), else ``"readings"``.
+        options: :class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer` options.
     """
-    from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+    from pigp_torch.optimizers.model_check import CheckedModelOptimizer
 
     machine = ctx.machine
     target = getattr(machine, "target", None)
     if target is None:
         raise ValueError("ares-physics needs an ARES machine with a target beam")
-    model, center, half = ares_model_parts()
     if obs_sd is None:
         obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
-    return FittedModelOptimizer(
-        ctx.bounds,
-        model=model,
-        goal=smooth_mae(target),
-        theta_center=center,
-        theta_half_width=half,
+    if best_from is None:
+        best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
+    return CheckedModelOptimizer.from_machine_model(
+        ares_machine_model(target),
+        bounds=ctx.bounds,
         obs_sd=obs_sd,
+        best_from=best_from,
         seed=ctx.seed,
         maximize=ctx.maximize,
         **options,

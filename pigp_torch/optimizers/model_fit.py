@@ -15,18 +15,38 @@ the misalignments), each step
    :math:`s` the observation noise (m), :math:`\sigma_u` the prior width (default
    :math:`1/\sqrt 3`, the standard deviation of a uniform draw on :math:`[-1, 1]`: the unknowns'
    ranges). Solved by Levenberg–Marquardt with the Jacobian of the model by forward-mode autograd,
-   warm-started at the previous fit;
+   warm-started at the previous fit, stopped when the cost drops by less than ``fit_cost_tol``
+   (default 1e-3, in squared noise units). Readings at a setting read before are merged into
+   their mean counted ``n`` times (the same least squares, fewer model rows);
 2. **asks the model's optimum** of the goal :math:`g(M(x, \hat\theta))` (to minimize, e.g. the mean
    absolute error to a target) inside a trust region: the box of half width :math:`r` (fraction of
-   each knob's range) around the best measured setting, clipped to the bounds; multi-start
-   L-BFGS-B (:func:`~pigp_torch._utils.multistart.maximize_from`) from the ``n_refine`` best of
-   ``n_candidates`` Sobol points, the best setting and the previous ask.
+   each knob's range) around the best measured setting, clipped to the bounds. The ``n_refine``
+   best of ``n_candidates`` Sobol points (plus the best setting and the previous ask) start a
+   batched, box-projected Levenberg–Marquardt on the goal's residuals :math:`\|\rho(M(x,
+   \hat\theta))\|^2` when ``residual`` :math:`\rho` is given (e.g. observables minus target: a
+   reachable target is a root, found in a few Gauss–Newton steps); the ``n_polish`` best end points
+   are then polished by L-BFGS-B on the goal itself (``maxiter`` iterations, stopped at a change
+   of ``search_ftol`` noise units; skipped when the best goal is at most ``polish_tol`` noise
+   standard deviations), and the best of all end points is asked. When the fit has not
+   moved since the last search (the prediction at the previous ask changed by at most
+   ``reuse_tol`` noise standard deviations), the previous ask lies in the region, and the region
+   has not grown, the previous ask is asked again without a search; when it moved by at most
+   ``local_tol`` noise standard deviations (default 0: never), the search starts from the
+   previous ask and the ``n_local`` best candidates only.
 
 The region grows (:math:`r \to \min(2r, r_{max})`) after a measurement better than the best
-before it and shrinks (:math:`r \to \max(r/2, r_{min})`) otherwise.
+before it or one the model predicted (every observable within ``agree_sd`` noise standard
+deviations of the prediction of the fit before it), and shrinks (:math:`r \to \max(r/2,
+r_{min})`) otherwise: the region guards against a model that does not explain the machine, not
+against repeating its optimum.
 
-The scalar ``y`` told with each reading is the objective the caller scores (for :meth:`best`);
-the fit uses the observables (``tell(x, y, observables=o)``).
+A :class:`~pigp_torch.prior.machine_model.MachineModel` gives all of the model's parts at once
+(:meth:`FittedModelOptimizer.from_machine_model`).
+
+The scalar ``y`` told with each reading is the objective the caller scores; the fit uses the
+observables (``tell(x, y, observables=o)``). :meth:`best` is the measured setting with the best
+``y`` (``best_from="readings"``) or the measured setting where the fitted model predicts the best
+goal (``"model"``: with a noisy screen the luckiest reading is not the best setting).
 """
 
 from __future__ import annotations
@@ -37,69 +57,14 @@ from collections.abc import Callable
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch._utils.multistart import maximize_from
+from pigp_torch.optimizers._least_squares import (
+    fit_unknowns,
+    least_squares_in_box,
+    minimize_in_box,
+)
 from pigp_torch.optimizers.base import AskTellOptimizer
 
-
-def fit_unknowns(
-    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-    X: torch.Tensor,
-    O: torch.Tensor,
-    center: torch.Tensor,
-    half_width: torch.Tensor,
-    *,
-    obs_sd: float,
-    prior_sd: float,
-    u0: torch.Tensor | None = None,
-    max_iter: int = 20,
-    tol: float = 1e-8,
-) -> tuple[torch.Tensor, float]:
-    r"""Levenberg–Marquardt fit of the normalized unknowns (module docstring, step 1).
-
-    Args:
-        model: ``(N x d knobs, P unknowns) -> N x m`` observables, differentiable in the unknowns.
-        X: ``N x d`` settings; O: ``N x m`` observables read there.
-        center, half_width: ``P`` each; :math:`\theta = c + h \odot u`.
-        obs_sd: observation noise :math:`s` (observable units); prior_sd: :math:`\sigma_u`.
-        u0: ``P`` start (default zeros, the prior mean).
-        max_iter: LM iterations; tol: stop when the cost changes by less than ``tol`` (relative).
-
-    Returns:
-        ``(u, cost)``: the fitted ``P`` normalized unknowns and the cost (the objective above).
-    """
-    P = center.numel()
-    u = torch.zeros(P, dtype=DTYPE) if u0 is None else u0.detach().clone()
-
-    def residual(v: torch.Tensor) -> torch.Tensor:
-        pred = model(X, center + half_width * v)
-        return torch.cat([((O - pred) / obs_sd).reshape(-1), v / prior_sd])
-
-    r = residual(u).detach()
-    cost = float(r @ r)
-    lam = 1e-3
-    for _ in range(int(max_iter)):
-        J = torch.autograd.functional.jacobian(
-            residual, u, strategy="forward-mode", vectorize=True
-        ).detach()
-        A = J.T @ J
-        g = J.T @ r
-        improved = False
-        for _ in range(10):
-            step = torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), -g)
-            r_new = residual(u + step).detach()
-            c_new = float(r_new @ r_new)
-            if math.isfinite(c_new) and c_new < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = (cost - c_new) / max(cost, 1e-300)
-        u, r, cost = u + step, r_new, c_new
-        lam = max(lam / 10.0, 1e-9)
-        if rel < tol:
-            break
-    return u, cost
+__all__ = ["FittedModelOptimizer", "fit_unknowns"]
 
 
 class FittedModelOptimizer(AskTellOptimizer):
@@ -115,16 +80,34 @@ class FittedModelOptimizer(AskTellOptimizer):
         prior_sd: prior width :math:`\sigma_u` in normalized units (default :math:`1/\sqrt3`).
         trust: initial trust-region half width, fraction of each knob's range (default 0.25).
         trust_min, trust_max: its limits (default 0.01, 1).
-        n_candidates, n_refine: Sobol candidates and L-BFGS-B starts of the ask (256, 4).
-        maxiter: L-BFGS-B iterations of the ask (default 100).
+        n_candidates, n_refine: Sobol candidates and starts of the ask's search (256, 16).
+        maxiter: L-BFGS-B iterations of the polish (default 30).
         fit_iter: Levenberg–Marquardt iterations per fit (default 20).
+        residual: ``N x m`` observables ``->`` ``N x r`` residuals whose zero is the goal's
+            optimum (e.g. observables minus target; default ``None``: L-BFGS-B on the goal
+            only).
+        ls_iter: Levenberg–Marquardt iterations of the ask's least squares (default 30).
+        n_polish: least-squares end points polished on the goal (default 2), unless the best
+            one's goal is at most ``polish_tol`` noise sd (default 0: always polished).
+        fit_cost_tol: the fit stops when its cost drops by less (squared noise units; 1e-3).
+        reuse_tol: the fit "has not moved" when the prediction at the previous ask changed by
+            at most this many noise standard deviations (default 0.05).
+        agree_sd: a reading agrees with the model when every observable lies within this many
+            noise standard deviations of the prediction (default 3).
+        local_tol, n_local: a fit that moved by at most ``local_tol`` noise sd (and more than
+            ``reuse_tol``) is searched from the previous ask and the ``n_local`` best candidates
+            only (default 0, 2: off; cheaper with a noisy screen, slightly worse optima).
+        search_ftol: L-BFGS-B stopping change of the summed goal in noise units (1e-6).
+        best_from: ``"readings"`` (default) or ``"model"`` (module docstring).
         seed: seed of the Sobol candidates.
         maximize: direction of the told scalar ``y`` (used by :meth:`best` and the trust region).
 
     Attributes:
         uses_observables: ``True``: ``tell`` takes ``observables``.
         u: the fitted normalized unknowns (``P``); theta: the fitted unknowns.
-        fit_cost: the cost of the last fit; trust: the current trust-region half width.
+        fit_cost: the cost of the last fit (all readings); trust: the current trust-region half
+            width. n_searches, n_reused: asks that searched / repeated the previous ask.
+        last_misfit: the largest ``|o - prediction| / obs_sd`` of the last reading.
     """
 
     name = "model-fit"
@@ -144,9 +127,20 @@ class FittedModelOptimizer(AskTellOptimizer):
         trust_min: float = 0.01,
         trust_max: float = 1.0,
         n_candidates: int = 256,
-        n_refine: int = 4,
-        maxiter: int = 100,
+        n_refine: int = 16,
+        maxiter: int = 30,
         fit_iter: int = 20,
+        residual: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        ls_iter: int = 30,
+        n_polish: int = 2,
+        polish_tol: float = 0.0,
+        fit_cost_tol: float = 1e-3,
+        agree_sd: float = 3.0,
+        reuse_tol: float = 0.05,
+        local_tol: float = 0.0,
+        n_local: int = 2,
+        search_ftol: float = 1e-6,
+        best_from: str = "readings",
         seed: int = 0,
         maximize: bool = False,
     ) -> None:
@@ -170,11 +164,58 @@ class FittedModelOptimizer(AskTellOptimizer):
         self.n_refine = int(n_refine)
         self.maxiter = int(maxiter)
         self.fit_iter = int(fit_iter)
+        if best_from not in ("readings", "model"):
+            raise ValueError(f"best_from must be 'readings' or 'model', got {best_from!r}")
+        if not (reuse_tol >= 0 and search_ftol > 0):
+            raise ValueError("reuse_tol must be >= 0 and search_ftol > 0")
+        self.residual = residual
+        self.ls_iter = int(ls_iter)
+        self.n_polish = int(n_polish)
+        self.polish_tol = float(polish_tol)
+        self.fit_cost_tol = float(fit_cost_tol)
+        self.agree_sd = float(agree_sd)
+        self.last_misfit = float("nan")
+        self.reuse_tol = float(reuse_tol)
+        self.local_tol = float(local_tol)
+        self.n_local = int(n_local)
+        self.search_ftol = float(search_ftol)
+        self.best_from = best_from
+        self.n_searches = 0
+        self.n_reused = 0
+        self._search_theta: torch.Tensor | None = None
+        self._fit_theta: torch.Tensor | None = None
+        self._best_cache: tuple | None = None
+        self._search_trust = 0.0
+        self._unique_x: list[torch.Tensor] = []
+        self._unique_sum: list[torch.Tensor] = []
+        self._unique_n: list[int] = []
+        self._group: list[int] = []
         self.seed = int(seed)
         self.O: list[torch.Tensor] = []
         self.u = torch.zeros_like(self.center)
         self.fit_cost = float("nan")
         self._last_ask: torch.Tensor | None = None
+        self.machine_model = None
+
+    @classmethod
+    def from_machine_model(
+        cls, machine_model, *, obs_sd: float, bounds=None, **options
+    ) -> FittedModelOptimizer:
+        """The optimizer of a :class:`~pigp_torch.prior.machine_model.MachineModel`: its
+        ``observe``, ``goal``, ``residual`` and unknowns' ranges; ``bounds`` default to the
+        model's. ``options``: the other keyword arguments of the constructor."""
+        opt = cls(
+            machine_model.bounds if bounds is None else bounds,
+            model=machine_model.observe,
+            goal=machine_model.goal,
+            residual=machine_model.residual,
+            theta_center=machine_model.unknown_center,
+            theta_half_width=machine_model.unknown_half_width,
+            obs_sd=obs_sd,
+            **options,
+        )
+        opt.machine_model = machine_model
+        return opt
 
     @property
     def theta(self) -> torch.Tensor:
@@ -186,31 +227,97 @@ class FittedModelOptimizer(AskTellOptimizer):
         if observables is None:
             raise ValueError(f"{type(self).__name__} needs the observables with each reading")
         best_before = self.best()[1] if self.Y else None
+        o_new = torch.as_tensor(observables, dtype=DTYPE).reshape(-1).clone()
+        agree = False
+        if self._fit_theta is not None:
+            with torch.no_grad():
+                pred = self.model(self._check_point(x)[None], self._fit_theta)[0]
+            self.last_misfit = float(((o_new - pred).abs() / self.obs_sd).max())
+            agree = self.last_misfit <= self.agree_sd
         super().tell(x, y)
-        self.O.append(torch.as_tensor(observables, dtype=DTYPE).reshape(-1).clone())
+        self.O.append(o_new)
         if best_before is not None:
             better = y > best_before if self.maximize else y < best_before
             self.trust = (
                 min(2 * self.trust, self.trust_max)
-                if better
+                if better or agree
                 else max(self.trust / 2, self.trust_min)
             )
-        self.u, self.fit_cost = fit_unknowns(
+        # Readings at a setting read before are merged (their mean, counted n times): the same
+        # least squares with fewer model rows (the ask repeats its optimum while the fit stands).
+        x_new, o_new = self.X[-1], self.O[-1]
+        for k, xu in enumerate(self._unique_x):
+            if torch.equal(xu, x_new):
+                self._unique_sum[k] = self._unique_sum[k] + o_new
+                self._unique_n[k] += 1
+                self._group.append(k)
+                break
+        else:
+            self._unique_x.append(x_new)
+            self._unique_sum.append(o_new)
+            self._unique_n.append(1)
+            self._group.append(len(self._unique_x) - 1)
+        n = torch.tensor(self._unique_n, dtype=DTYPE)
+        self.u, merged_cost = fit_unknowns(
             self.model,
-            torch.stack(self.X),
-            torch.stack(self.O),
+            torch.stack(self._unique_x),
+            torch.stack(self._unique_sum) / n.unsqueeze(-1),
             self.center,
             self.half_width,
             obs_sd=self.obs_sd,
             prior_sd=self.prior_sd,
             u0=self.u,
             max_iter=self.fit_iter,
+            weights=n,
+            cost_tol=self.fit_cost_tol,
         )
+        self.fit_cost = merged_cost + self._scatter()
+        self._fit_theta = self.theta.detach().clone()
+
+    def _scatter(self) -> float:
+        """Sum over the readings of their squared deviations from their setting's mean, in noise
+        units (the constant that the merged fit leaves out of the cost)."""
+        n = torch.tensor(self._unique_n, dtype=DTYPE).unsqueeze(-1)
+        means = torch.stack(self._unique_sum) / n
+        dev = torch.stack(self.O) - means[torch.tensor(self._group)]
+        return float((dev / self.obs_sd).square().sum())
+
+    def best(self) -> tuple[torch.Tensor, float]:
+        """The best measured ``(x, y)``: by the readings ``y`` (``best_from="readings"``), or the
+        measured setting where the fitted model predicts the best goal (``"model"``; with a noisy
+        screen one lucky reading does not decide), with the ``y`` read there."""
+        if self.best_from == "readings" or self._fit_theta is None:
+            return super().best()
+        cache = self._best_cache
+        if cache is None or cache[0] != self.n_told or cache[1] is not self._fit_theta:
+            with torch.no_grad():
+                g = self.goal(self.model(torch.stack(self.X), self._fit_theta))
+            g = torch.where(torch.isfinite(g), g, torch.full_like(g, torch.inf))
+            self._best_cache = (self.n_told, self._fit_theta, int(g.argmin()))
+        i = self._best_cache[2]
+        return self.X[i].clone(), self.Y[i]
 
     def predict(self, X: torch.Tensor) -> torch.Tensor:
         """The fitted model's observables at ``N x d`` settings (``N x m``)."""
         with torch.no_grad():
             return self.model(X, self.theta)
+
+    def _search_box(self) -> torch.Tensor:
+        """``2 x d``: the trust region around the best setting, clipped to the bounds."""
+        x_best, _ = self.best()
+        lo, hi = self.bounds
+        half = self.trust * (hi - lo)
+        return torch.stack([torch.maximum(lo, x_best - half), torch.minimum(hi, x_best + half)])
+
+    def _fit_change(self, theta: torch.Tensor) -> float:
+        r"""The largest change of the model's prediction at the last ask since the last search,
+        in noise standard deviations (``inf`` before the first search)."""
+        if self._last_ask is None or self._search_theta is None:
+            return float("inf")
+        with torch.no_grad():
+            x = self._last_ask[None]
+            change = self.model(x, theta) - self.model(x, self._search_theta)
+        return float(change.abs().max()) / self.obs_sd
 
     def ask(self) -> torch.Tensor:
         """The fitted model's optimum of the goal inside the trust region (``d``)."""
@@ -218,24 +325,72 @@ class FittedModelOptimizer(AskTellOptimizer):
             raise RuntimeError("tell() the start point first")
         x_best, _ = self.best()
         lo, hi = self.bounds
-        half = self.trust * (hi - lo)
-        box = torch.stack([torch.maximum(lo, x_best - half), torch.minimum(hi, x_best + half)])
+        box = self._search_box()
+        theta = self.theta.detach()
+        last = self._last_ask
+        inside = last is not None and bool(((last >= box[0]) & (last <= box[1])).all())
+        same_region = inside and self.trust <= self._search_trust
+        change = self._fit_change(theta) if same_region else float("inf")
+        if change <= self.reuse_tol:
+            # The fit did not move: the previous optimum is still the model's optimum.
+            self.n_reused += 1
+            return last.clone()
         width = box[1] - box[0]
         sobol = torch.quasirandom.SobolEngine(self.dim, scramble=True, seed=self.seed + self.n_told)
         Z = sobol.draw(self.n_candidates, dtype=DTYPE)
-        extra = [x_best] + ([self._last_ask] if self._last_ask is not None else [])
+        extra = [x_best] + ([last] if last is not None else [])
         Ze = ((torch.stack(extra) - box[0]) / width.clamp_min(1e-300)).clamp(0.0, 1.0)
         Z = torch.cat([Ze, Z])
-        theta = self.theta.detach()
         with torch.no_grad():
             values = self.goal(self.model(box[0] + width * Z, theta))
-        starts = Z[torch.argsort(values)[: self.n_refine]]
+        values = torch.where(torch.isfinite(values), values, torch.full_like(values, torch.inf))
+        order = torch.argsort(values)
+        # The n_refine best candidates are refined together (one batched evaluation per
+        # iteration); the previous ask inside the box is one more start (a warm start).
+        # A fit that moved by less than local_tol noise sd moves the optimum little: the
+        # previous ask and the n_local best candidates suffice.
+        n_starts = self.n_local if change <= self.local_tol else self.n_refine
+        starts = Z[order[:n_starts]]
+        if inside:
+            starts = torch.cat([Ze[-1:], starts])
 
-        def f(X: torch.Tensor) -> torch.Tensor:
-            return -self.goal(self.model(X, theta))
+        def goal(X: torch.Tensor) -> torch.Tensor:
+            return self.goal(self.model(X, theta))
 
-        Xs, ys = maximize_from(f, box, starts, maxiter=self.maxiter)
-        x = Xs[int(ys.argmax())].detach()
-        x = torch.minimum(torch.maximum(x, lo), hi)
+        if self.residual is not None:
+            # Least squares first: the goal is small where the residuals are, and Gauss-Newton
+            # converges in a few iterations where a quasi-Newton search on a sum of absolute
+            # values crawls along its kinks.
+            starts = least_squares_in_box(
+                lambda X: self.residual(self.model(X, theta)),
+                box,
+                starts,
+                scale=self.obs_sd,
+                max_iter=self.ls_iter,
+            )
+            with torch.no_grad():
+                ls_values = goal(box[0] + width * starts)
+            ls_starts = starts[torch.argsort(ls_values)]
+            # Polish (L-BFGS-B on the goal itself) only where least squares left the goal
+            # above polish_tol noise sd: a target it reached needs no more.
+            reached = bool(ls_values.min() <= self.polish_tol * self.obs_sd)
+            starts = ls_starts[: 0 if reached else self.n_polish]
+        X, v = box[0] + width * starts[:0], values[:0]
+        if starts.shape[0]:
+            X, v = minimize_in_box(
+                goal, box, starts, scale=self.obs_sd, maxiter=self.maxiter, ftol=self.search_ftol
+            )
+        if self.residual is not None:  # the least-squares end points compete as they are
+            X_ls = box[0] + width * ls_starts
+            with torch.no_grad():
+                v_ls = goal(X_ls)
+            X, v = torch.cat([X, X_ls]), torch.cat([v, v_ls])
+        v = torch.where(torch.isfinite(v), v, torch.full_like(v, torch.inf))
+        i = int(v.argmin())
+        x = X[i] if bool(v[i] <= values[order[0]]) else box[0] + width * Z[order[0]]
+        x = torch.minimum(torch.maximum(x.detach(), lo), hi)
         self._last_ask = x.clone()
+        self._search_theta = theta.clone()
+        self._search_trust = self.trust
+        self.n_searches += 1
         return x

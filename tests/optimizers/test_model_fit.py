@@ -65,3 +65,91 @@ def test_optimizer_finds_target_of_known_model_family():
     assert errs[0] > 0.1 and min(errs) < 1e-4
     with pytest.raises(ValueError, match="observables"):
         opt.tell(x, 0.0)
+
+
+def test_merged_repeated_readings_give_the_same_fit():
+    """Readings repeated at one setting, merged into their mean counted n times, give the same
+    fitted unknowns as the unmerged readings (the same least squares up to a constant)."""
+    gen = torch.Generator().manual_seed(1)
+    X = torch.rand(4, 2, generator=gen, dtype=D)
+    rep = torch.tensor([0, 0, 0, 1, 2, 2, 3])
+    truth = torch.tensor([1.2, 0.3, 0.7], dtype=D)
+    O = _linear_model(X[rep], truth) + 0.05 * torch.randn(7, 2, generator=gen, dtype=D)
+    c = torch.tensor([1.0, 0.0, 1.0], dtype=D)
+    h = torch.tensor([0.5, 0.5, 0.5], dtype=D)
+    u_all, cost_all = fit_unknowns(_linear_model, X[rep], O, c, h, obs_sd=0.05, prior_sd=0.6)
+    n = torch.bincount(rep).to(D)
+    mean = torch.zeros(4, 2, dtype=D).index_add_(0, rep, O) / n[:, None]
+    u_m, cost_m = fit_unknowns(_linear_model, X, mean, c, h, obs_sd=0.05, prior_sd=0.6, weights=n)
+    torch.testing.assert_close(u_m, u_all, rtol=1e-9, atol=1e-11)
+    scatter = float(((O - mean[rep]) / 0.05).square().sum())
+    assert cost_m + scatter == pytest.approx(cost_all, rel=1e-9)
+
+
+def test_least_squares_in_box_finds_roots_and_stays_inside():
+    """The batched projected Levenberg-Marquardt of the ask: from several starts it reaches the
+    root of r(x) = (x0^2 + x1 - 1, x0 - x1) inside [0, 1]^2 (x0 = x1 = (sqrt 5 - 1) / 2); with
+    the root outside a box it ends on the box edge nearest the least-squares optimum."""
+    from pigp_torch.optimizers._least_squares import least_squares_in_box
+
+    def res(X):
+        return torch.stack([X[:, 0] ** 2 + X[:, 1] - 1, X[:, 0] - X[:, 1]], -1)
+
+    box = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=D)
+    Z0 = torch.tensor([[0.1, 0.9], [0.9, 0.1], [0.5, 0.5]], dtype=D)
+    Z = least_squares_in_box(res, box, Z0, scale=1.0, max_iter=50, tol=1e-12, abs_tol=1e-24)
+    root = (5**0.5 - 1) / 2
+    torch.testing.assert_close(Z, torch.full_like(Z, root), atol=1e-8, rtol=0)
+    small = torch.tensor([[0.0, 0.0], [0.5, 0.5]], dtype=D)
+    Zs = least_squares_in_box(res, small, Z0 / 2, scale=1.0, max_iter=50)
+    assert ((Zs >= 0) & (Zs <= 1)).all()
+    assert float(res(Zs * 0.5).square().sum(-1).max()) < float(res(Z0 / 4).square().sum(-1).min())
+
+
+def _known_family_optimizer(**kw):
+    target = torch.tensor([0.5, -0.4], dtype=D)
+    bounds = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
+    opt = FittedModelOptimizer(
+        bounds,
+        model=_linear_model,
+        goal=lambda o: ((o - target).square() + 1e-12).sqrt().mean(-1),
+        residual=lambda o: o - target,
+        theta_center=torch.tensor([1.0, 0.0, 1.0], dtype=D),
+        theta_half_width=torch.tensor([0.5, 0.5, 0.5], dtype=D),
+        maximize=False,
+        **kw,
+    )
+    return opt, target
+
+
+def test_optimizer_repeats_its_optimum_without_searching_once_the_fit_stands():
+    """Noise-free, a model family containing the machine: after the fit has converged the ask
+    repeats the previous optimum without a new search, the repeated readings are merged, and
+    the optimum reaches the target."""
+    truth = torch.tensor([1.4, -0.3, 0.8], dtype=D)
+    opt, target = _known_family_optimizer(obs_sd=1e-6)
+    x = torch.zeros(2, dtype=D)
+    for _ in range(12):
+        o = _linear_model(x[None], truth)[0]
+        opt.tell(x, float((o - target).abs().mean()), observables=o)
+        x = opt.ask()
+    assert opt.n_reused >= 6 and opt.n_searches <= 5
+    assert len(opt._unique_x) <= 6
+    o = _linear_model(x[None], truth)[0]
+    assert float((o - target).abs().max()) < 1e-5
+    assert opt.trust == 1.0  # the readings agreed with the model: the region grew
+
+
+def test_best_from_model_ignores_a_lucky_noisy_reading():
+    """With best_from="model" the best setting is where the fitted model predicts the best goal,
+    not the setting of the smallest noisy reading."""
+    truth = torch.tensor([1.0, 0.0, 1.0], dtype=D)
+    target = torch.tensor([0.5, -0.4], dtype=D)
+    X = [torch.tensor([0.5, -0.4], dtype=D), torch.tensor([0.0, 0.0], dtype=D)]
+    for best_from, expected in (("model", 0), ("readings", 1)):
+        opt, _ = _known_family_optimizer(obs_sd=0.05, best_from=best_from)
+        for i, x in enumerate(X * 3):
+            o = _linear_model(x[None], truth)[0]
+            y = float((o - target).abs().mean())
+            opt.tell(x, y - (1.0 if (i == 1) else 0.0), observables=o)  # one lucky reading
+        assert torch.equal(opt.best()[0], X[expected])

@@ -1,0 +1,196 @@
+r"""The least-squares solvers of :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`:
+the fit of the unknowns (:func:`fit_unknowns`, Levenberg–Marquardt) and the two searches of its
+ask, in a box and from several starts at once (:func:`least_squares_in_box`, a projected
+Levenberg–Marquardt on residuals; :func:`minimize_in_box`, L-BFGS-B on a scalar goal stopped at
+a stated fraction of the noise)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch._utils.lbfgsb import minimize_lbfgsb
+
+
+def fit_unknowns(
+    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    X: torch.Tensor,
+    O: torch.Tensor,
+    center: torch.Tensor,
+    half_width: torch.Tensor,
+    *,
+    obs_sd: float,
+    prior_sd: float,
+    u0: torch.Tensor | None = None,
+    max_iter: int = 20,
+    tol: float = 1e-8,
+    weights: torch.Tensor | None = None,
+    cost_tol: float = 0.0,
+) -> tuple[torch.Tensor, float]:
+    r"""Levenberg–Marquardt fit of the normalized unknowns (module docstring, step 1).
+
+    Args:
+        model: ``(N x d knobs, P unknowns) -> N x m`` observables, differentiable in the unknowns.
+        X: ``N x d`` settings; O: ``N x m`` observables read there.
+        center, half_width: ``P`` each; :math:`\theta = c + h \odot u`.
+        obs_sd: observation noise :math:`s` (observable units); prior_sd: :math:`\sigma_u`.
+        u0: ``P`` start (default zeros, the prior mean).
+        max_iter: LM iterations; tol: stop when the cost changes by less than ``tol`` (relative)
+            or by less than ``cost_tol`` (absolute, default 0).
+        weights: ``N`` numbers of readings merged into each row of ``O`` (their mean; default
+            ones): row ``k``'s squared residual counts ``weights[k]`` times, which is the same
+            least-squares problem as the unmerged readings (up to a constant, their scatter).
+
+    Returns:
+        ``(u, cost)``: the fitted ``P`` normalized unknowns and the cost (the objective above).
+    """
+    P = center.numel()
+    u = torch.zeros(P, dtype=DTYPE) if u0 is None else u0.detach().clone()
+
+    w = torch.ones(X.shape[0], dtype=DTYPE) if weights is None else weights.to(DTYPE)
+    root_w = w.sqrt().unsqueeze(-1)
+
+    def residual(v: torch.Tensor) -> torch.Tensor:
+        pred = model(X, center + half_width * v)
+        return torch.cat([(root_w * (O - pred) / obs_sd).reshape(-1), v / prior_sd])
+
+    r = residual(u).detach()
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(int(max_iter)):
+        J = torch.autograd.functional.jacobian(
+            residual, u, strategy="forward-mode", vectorize=True
+        ).detach()
+        A = J.T @ J
+        g = J.T @ r
+        improved = False
+        for _ in range(10):
+            step = torch.linalg.solve(A + lam * torch.diag(A.diagonal() + 1e-12), -g)
+            r_new = residual(u + step).detach()
+            c_new = float(r_new @ r_new)
+            if math.isfinite(c_new) and c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        drop = cost - c_new
+        u, r, cost = u + step, r_new, c_new
+        lam = max(lam / 10.0, 1e-9)
+        if drop < tol * (cost + drop) or drop < cost_tol:
+            break
+    return u, cost
+
+
+def least_squares_in_box(
+    residual: Callable[[torch.Tensor], torch.Tensor],
+    box: torch.Tensor,
+    Z0: torch.Tensor,
+    *,
+    scale: float,
+    max_iter: int,
+    tol: float = 1e-3,
+    abs_tol: float = 1e-2,
+) -> torch.Tensor:
+    r"""Projected Levenberg–Marquardt on :math:`\|r(x)\|^2 / s^2` inside ``box`` from each of the
+    ``k`` unit-cube starts ``Z0`` at once; returns the ``k x d`` end points (unit cube).
+
+    ``residual``: ``k x d`` settings ``->`` ``k x r`` residuals. Per iteration one batched
+    evaluation of the Jacobian (each start repeated ``r`` times, one backward pass) and one of
+    the trial steps; each start keeps its own damping :math:`\lambda` and accepts a step (clipped
+    to the box) only when its sum of squares decreases. Stops after ``max_iter`` iterations or
+    when no start improves by more than ``tol`` (relative) and ``abs_tol`` (absolute, in squared
+    noise units: the end points agree with the optimum far below the noise).
+    """
+    lo, width = box[0], (box[1] - box[0]).clamp_min(1e-300)
+    Z = Z0.detach().to(DTYPE).clone()
+    k, d = Z.shape
+
+    def res(z: torch.Tensor) -> torch.Tensor:
+        return residual(lo + width * z) / scale
+
+    with torch.no_grad():
+        r = res(Z)
+    m = r.shape[-1]
+    cost = r.square().sum(-1)
+    cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, torch.inf))
+    lam = torch.full((k,), 1e-3, dtype=DTYPE)
+    eye = torch.eye(d, dtype=DTYPE)
+    for _ in range(int(max_iter)):
+        zr = Z.repeat_interleave(m, 0).requires_grad_(True)
+        out = res(zr).reshape(k, m, m)
+        (g,) = torch.autograd.grad(out.diagonal(dim1=1, dim2=2).sum(), zr)
+        J = g.reshape(k, m, d)
+        J = torch.where(torch.isfinite(J), J, torch.zeros_like(J))
+        A = J.transpose(1, 2) @ J
+        b = (J.transpose(1, 2) @ torch.nan_to_num(r).unsqueeze(-1)).squeeze(-1)
+        diag = A.diagonal(dim1=1, dim2=2)
+        damp = lam[:, None, None] * (torch.diag_embed(diag) + 1e-9 * diag.mean(-1)[:, None, None])
+        step = torch.linalg.solve(A + damp + 1e-300 * eye, -b)
+        Zn = (Z + step).clamp(0.0, 1.0)
+        with torch.no_grad():
+            rn = res(Zn)
+        cn = rn.square().sum(-1)
+        better = torch.isfinite(cn) & (cn < cost)
+        drop = torch.where(better, cost - cn, torch.zeros_like(cn))
+        moving = better & (drop > tol * cost) & (drop > abs_tol)
+        Z = torch.where(better[:, None], Zn, Z)
+        r = torch.where(better[:, None], rn, r)
+        cost = torch.where(better, cn, cost)
+        lam = torch.where(better, (lam / 10).clamp_min(1e-12), (lam * 10).clamp_max(1e12))
+        if bool(better.any()) and not bool(moving.any()):
+            break  # the improving starts have converged
+        if not bool(better.any()) and bool((lam >= 1e12).all()):
+            break  # no start can improve any more
+    return Z
+
+
+def minimize_in_box(
+    goal: Callable[[torch.Tensor], torch.Tensor],
+    box: torch.Tensor,
+    Z0: torch.Tensor,
+    *,
+    scale: float,
+    maxiter: int,
+    ftol: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""Minimize a batched ``goal`` (``k x d -> k``) inside ``box`` from ``k`` unit-cube starts
+    ``Z0``, all starts as one L-BFGS-B problem on the sum of ``goal / scale`` (each row follows
+    its own path; one batched evaluation per iteration).
+
+    Hand-driven rather than :func:`~pigp_torch._utils.multistart.maximize_from` for its stopping
+    rule: that one runs to machine precision (``ftol`` 1e-15), while the ask only needs the
+    optimum to a small fraction of the noise; in units of ``scale`` (the noise), ``ftol`` is an
+    absolute change of the summed goal below which the search stops.
+
+    Returns:
+        ``(X, values)``: ``k x d`` end points (knob units) and their goal values
+        (``inf`` where not finite).
+    """
+    lo, width = box[0], (box[1] - box[0]).clamp_min(1e-300)
+    k, d = Z0.shape
+
+    def fun(zflat):
+        z = torch.from_numpy(zflat.reshape(k, d)).to(DTYPE).requires_grad_(True)
+        y = goal(lo + width * z) / scale
+        ok = torch.isfinite(y)
+        total = torch.where(ok, y, torch.zeros_like(y)).sum()
+        (g,) = torch.autograd.grad(total, z)
+        return float(total.detach()) + 1e6 * float((~ok).sum()), g.detach().numpy().reshape(-1)
+
+    res = minimize_lbfgsb(
+        fun,
+        Z0.detach().to(DTYPE).numpy().reshape(-1),
+        bounds=[(0.0, 1.0)] * (k * d),
+        maxiter=maxiter,
+        maxfun=2 * maxiter,
+        ftol=ftol,
+        gtol=1e-9,
+    )
+    X = lo + width * torch.from_numpy(res.x.reshape(k, d)).to(DTYPE)
+    with torch.no_grad():
+        v = goal(X)
+    return X, torch.where(torch.isfinite(v), v, torch.full_like(v, torch.inf))
