@@ -165,16 +165,11 @@ def prior_from_machine_model(
     valley, which :func:`~pigp_torch.prior.prior_from_model` repairs with a warning.
     """
     from pigp_torch.prior.build import prior_from_model
-    from pigp_torch.prior.optimum import find_optimum
 
     theta0 = model.unknown_center if theta is None else torch.as_tensor(theta, dtype=DTYPE)
     b = model.bounds
     if goal_background is None:
-        sobol = torch.quasirandom.SobolEngine(model.dim, scramble=True, seed=int(seed))
-        Z = sobol.draw(max(int(n_samples), 1), dtype=DTYPE)
-        with torch.no_grad():
-            g = model.goal_at(b[0] + (b[1] - b[0]) * Z, theta0)
-        goal_background = float(g[torch.isfinite(g)].max())
+        goal_background = _largest_goal(model, theta0, seed, n_samples)
     g_inf = float(goal_background)
 
     def f(X: Tensor) -> Tensor:
@@ -183,17 +178,7 @@ def prior_from_machine_model(
     provenance = {"machine_model": model.name, "goal_background": g_inf}
     center_cov = None
     if int(n_ensemble) > 0:
-        optima = []
-        for k, th in enumerate(model.sample_unknowns(int(n_ensemble), seed=seed)):
-            x, _ = find_optimum(
-                lambda X, th=th: -model.goal_at(X, th), b, n_starts=n_starts, seed=int(seed) + k
-            )
-            optima.append(x)
-        A = torch.stack(optima)
-        mean = A.mean(0)
-        dev = A - mean
-        jitter = 1e-9 * (b[1] - b[0]).square()
-        center_cov = dev.T @ dev / max(len(optima) - 1, 1) + torch.diag(jitter)
+        center_cov, mean = _ensemble_center_cov(model, int(n_ensemble), seed, n_starts)
         provenance["ensemble_mean"] = mean.tolist()
         provenance["n_ensemble"] = int(n_ensemble)
     prior = prior_from_model(
@@ -210,3 +195,32 @@ def prior_from_machine_model(
     if center_cov is not None:
         prior = dataclasses.replace(prior, center_cov=center_cov)
     return prior
+
+
+def _largest_goal(model: MachineModel, theta: Tensor, seed: int, n_samples: int) -> float:
+    """The largest finite goal over ``n_samples`` scrambled Sobol points of the knob box."""
+    b = model.bounds
+    sobol = torch.quasirandom.SobolEngine(model.dim, scramble=True, seed=int(seed))
+    Z = sobol.draw(max(int(n_samples), 1), dtype=DTYPE)
+    with torch.no_grad():
+        g = model.goal_at(b[0] + (b[1] - b[0]) * Z, theta)
+    return float(g[torch.isfinite(g)].max())
+
+
+def _ensemble_center_cov(model: MachineModel, n: int, seed: int, n_starts: int):
+    """``(center_cov, mean)`` of the goal's optima for ``n`` seeded draws of the unknowns: their
+    covariance about their mean plus ``1e-9`` of each knob's range squared on the diagonal."""
+    from pigp_torch.prior.optimum import find_optimum
+
+    b = model.bounds
+    optima = []
+    for k, th in enumerate(model.sample_unknowns(n, seed=seed)):
+        x, _ = find_optimum(
+            lambda X, th=th: -model.goal_at(X, th), b, n_starts=n_starts, seed=int(seed) + k
+        )
+        optima.append(x)
+    A = torch.stack(optima)
+    mean = A.mean(0)
+    dev = A - mean
+    jitter = 1e-9 * (b[1] - b[0]).square()
+    return dev.T @ dev / max(len(optima) - 1, 1) + torch.diag(jitter), mean
