@@ -140,7 +140,7 @@ def markdown_table(scores: pd.DataFrame) -> str:
         for _, r in summary.iterrows():
             lines.append(
                 f"| {label} | `{r['method']}` | {int(r['trials'])} | {readings[r['method']]} | "
-                f"{_iqr(r, 'final_mae_um', '.1f')} | {_iqr(r, 'best_mae_um', '.1f')} | "
+                f"{_iqr(r, 'final_mae_um', '.3g')} | {_iqr(r, 'best_mae_um', '.3g')} | "
                 f"{_iqr(r, 'steps_to_40um', '.0f')} | {r['share_40um']:.0%} | "
                 f"{_iqr(r, 'steps_to_20um', '.0f')} | {r['share_20um']:.0%} |"
             )

@@ -78,7 +78,7 @@ def test_conditions_table_scores_and_figure(script, folders, tmp_path):
     assert len(table) == 2 + 5
     row = next(r for r in table if r.startswith("| misalign-3x, noise-free | `published-nm`"))
     q = np.quantile(last.to_numpy() * 1e6, [0.25, 0.5, 0.75])
-    assert f"| {q[1]:.1f} [{q[0]:.1f}, {q[2]:.1f}] |" in row
+    assert f"| {q[1]:.3g} [{q[0]:.3g}, {q[2]:.3g}] |" in row
     assert "| 3 | 4 |" in row
     assert png.stat().st_size > 5000
 
