@@ -2,12 +2,11 @@ r"""L-BFGS-B with less per-evaluation overhead: scipy's compiled routine, driven
 
 :func:`scipy.optimize.minimize` (``method="L-BFGS-B"``) wraps the objective in several layers
 (memoized value/gradient, a scalar-function object with array-API conversions, copies, finite
-checks). Those layers cost about as much per evaluation as the model's whole negative log
-posterior at 13 knobs and 100 readings (measured in docs/results.md), and the MAP fit evaluates it
-several hundred times per ask. :func:`minimize_lbfgsb` runs the same compiled routine
-(``scipy.optimize._lbfgsb.setulb``) with the same inputs, so the iterates, values and
-stopping are bit-identical to :func:`scipy.optimize.minimize`; only the Python around it is
-thinner.
+checks). Those layers add Python work to every evaluation, and the MAP fit evaluates the
+objective several hundred times per ask (the overhead is measured in docs/results.md).
+:func:`minimize_lbfgsb` runs the same compiled routine (``scipy.optimize._lbfgsb.setulb``) with
+the same inputs, so the iterates, values and stopping are bit-identical to
+:func:`scipy.optimize.minimize`; only the Python around it is thinner.
 
 ``setulb`` is private to scipy and its signature has changed between releases. So the direct
 driver is used only after a self-check at first use: it must reproduce

@@ -157,7 +157,7 @@ def ensemble_optima(
     The optimum is the centre :math:`\boldsymbol\mu` of the physics form that
     :class:`~pigp_torch.models.InverseSqrtPeakModel` fits, and its shape :math:`B`; both come
     from :func:`unconstrained_optimum` (a growing search box, each result checked to be a
-    maximum; a few seconds a ring at 13 knobs). :func:`ring_optima` computes them ring by ring
+    maximum). :func:`ring_optima` computes them ring by ring
     (several processes may each take a part of the seeds) and :func:`gather_optima` assembles
     the result; this function is the two in one process.
 
