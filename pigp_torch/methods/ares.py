@@ -64,16 +64,29 @@ def build_published_nm(ctx: RunContext, *, initial_simplex_size: float = 0.25, *
 ARES_FITTED_INCOMING: tuple[str, ...] = INCOMING_NAMES[1:9]
 
 
-def ares_model_parts(segment=None, lattice=None):
+#: The quadrupoles whose calibration (k1 acted / k1 set) ``ares-physics`` fits.
+ARES_CALIBRATED_QUADS: tuple[str, ...] = ("AREAMQZM1", "AREAMQZM2", "AREAMQZM3")
+
+#: Half width of the quadrupoles' calibration range (fraction of k1): the prior of each
+#: quadrupole's gain is centred at 1 with this half width (a standard deviation of
+#: ``half / sqrt(3)`` in the fit).
+ARES_QUAD_GAIN_HALF_WIDTH = 0.05
+
+
+def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH):
     r"""The ARES-EA model for :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`:
     ``(model, center, half_width)``.
 
-    ``model(X, theta)``: ``N x 5`` knobs and ``P = 16`` unknowns (:data:`ARES_FITTED_INCOMING`,
-    then the misalignments q1_x … screen_y, m and rad) -> ``N x 4`` beam on the screen (m); the
-    energy, bunch length and energy spread are held at the middle of their ranges. ``center`` and
-    ``half_width``: the middle and half width of the ranges the trials were drawn from.
+    ``model(X, theta)``: ``N x 5`` knobs and ``P`` unknowns -> ``N x 4`` beam on the screen (m).
+    The unknowns: :data:`ARES_FITTED_INCOMING` (8), the misalignments q1_x … screen_y (8, m and
+    rad), then, unless ``quad_gain_half_width`` is 0, the gains :math:`g_q` of the three
+    quadrupoles (:data:`ARES_CALIBRATED_QUADS`, dimensionless): the magnet acts with
+    :math:`g_q k_{1,\text{set}}` (a calibration or energy error). ``P = 19`` by default, 16
+    without gains. The energy, bunch length and energy spread are held at the middle of their
+    ranges. ``center`` and ``half_width``: the middle and half width of the ranges the trials
+    were drawn from, and ``1 ± quad_gain_half_width`` (default 0.05) for the gains.
     """
-    from pigp_torch.simulation.ares import INCOMING_NAMES, AresSegment, load_lattice
+    from pigp_torch.simulation.ares import INCOMING_NAMES, KNOB_NAMES, AresSegment, load_lattice
 
     lattice = load_lattice() if lattice is None else lattice
     segment = AresSegment(lattice) if segment is None else segment
@@ -83,16 +96,36 @@ def ares_model_parts(segment=None, lattice=None):
     order = list(rng["order"])
     if order != list(INCOMING_NAMES):
         raise ValueError(f"lattice incoming-beam order {order} is not {list(INCOMING_NAMES)}")
+    if not quad_gain_half_width >= 0:
+        raise ValueError(f"quad_gain_half_width must be >= 0, got {quad_gain_half_width}")
     idx = torch.tensor([order.index(n) for n in ARES_FITTED_INCOMING])
     m_lo, m_hi = lattice["misalignments"]["range_m"]
-    center = torch.cat([(lo + hi)[idx] / 2, torch.full((8,), (m_lo + m_hi) / 2, dtype=DTYPE)])
-    half = torch.cat([(hi - lo)[idx] / 2, torch.full((8,), (m_hi - m_lo) / 2, dtype=DTYPE)])
+    n_gain = len(ARES_CALIBRATED_QUADS) if quad_gain_half_width > 0 else 0
+    center = torch.cat(
+        [
+            (lo + hi)[idx] / 2,
+            torch.full((8,), (m_lo + m_hi) / 2, dtype=DTYPE),
+            torch.ones(n_gain, dtype=DTYPE),
+        ]
+    )
+    half = torch.cat(
+        [
+            (hi - lo)[idx] / 2,
+            torch.full((8,), (m_hi - m_lo) / 2, dtype=DTYPE),
+            torch.full((n_gain,), float(quad_gain_half_width), dtype=DTYPE),
+        ]
+    )
     base = (lo + hi) / 2
+    quad_idx = [KNOB_NAMES.index(n) for n in ARES_CALIBRATED_QUADS]
 
     def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         inc = base.expand(*theta.shape[:-1], len(INCOMING_NAMES))
         inc = torch.cat([inc[..., :1], theta[..., :8], inc[..., 9:]], dim=-1)
-        return segment.observe(X, inc, theta[..., 8:], energy=base[0])
+        if n_gain:
+            gain = torch.ones(*theta.shape[:-1], len(KNOB_NAMES), dtype=theta.dtype)
+            gain = gain.index_copy(-1, torch.tensor(quad_idx), theta[..., 16:])
+            X = X * gain  # broadcast as the incoming beam and misalignments are
+        return segment.observe(X, inc, theta[..., 8:16], energy=base[0])
 
     return model, center, half
 
@@ -102,11 +135,14 @@ def ares_model_parts(segment=None, lattice=None):
 ARES_FITTED_UNITS: tuple[str, ...] = ("m", "rad", "m", "rad", "m", "rad", "m", "rad", *("m",) * 8)
 
 
-def ares_machine_model(target, segment=None, lattice=None):
+def ares_machine_model(
+    target, segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH
+):
     r"""The ARES-EA segment as a :class:`~pigp_torch.prior.machine_model.MachineModel`: the five
-    knobs (bidirectional bounds), the four beam numbers on the screen (m), the 16 unknowns of
-    :func:`ares_model_parts` with the ranges the trials were drawn from, and the goal
-    :func:`smooth_mae` to ``target`` (``4`` numbers, m) with residual ``o - target``."""
+    knobs (bidirectional bounds), the four beam numbers on the screen (m), the unknowns of
+    :func:`ares_model_parts` (the incoming beam and misalignments with the ranges the trials were
+    drawn from, and the quadrupoles' gains ``1 ± quad_gain_half_width``; no gains with 0), and the
+    goal :func:`smooth_mae` to ``target`` (``4`` numbers, m) with residual ``o - target``."""
     from pigp_torch.prior.machine_model import MachineModel
     from pigp_torch.simulation.ares import (
         KNOB_NAMES,
@@ -115,7 +151,8 @@ def ares_machine_model(target, segment=None, lattice=None):
         OBSERVABLE_NAMES,
     )
 
-    model, center, half = ares_model_parts(segment, lattice)
+    model, center, half = ares_model_parts(segment, lattice, quad_gain_half_width)
+    gains = tuple(f"{q}_gain" for q in ARES_CALIBRATED_QUADS)[: len(center) - 16]
     t = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
     if t.shape != (4,):
         raise ValueError(f"the ARES target needs 4 numbers (m), got {tuple(t.shape)}")
@@ -126,8 +163,8 @@ def ares_machine_model(target, segment=None, lattice=None):
         bounds=knob_bounds(lattice=lattice),
         observable_names=OBSERVABLE_NAMES,
         observable_units=("m",) * 4,
-        unknown_names=(*ARES_FITTED_INCOMING, *MISALIGNMENT_NAMES),
-        unknown_units=ARES_FITTED_UNITS,
+        unknown_names=(*ARES_FITTED_INCOMING, *MISALIGNMENT_NAMES, *gains),
+        unknown_units=(*ARES_FITTED_UNITS, *("1",) * len(gains)),
         unknown_center=center,
         unknown_half_width=half,
         observe=model,
@@ -153,6 +190,7 @@ def build_ares_physics(
     obs_sd: float | None = None,
     obs_sd_floor: float = 1e-6,
     best_from: str | None = None,
+    quad_gain_half_width: float = ARES_QUAD_GAIN_HALF_WIDTH,
     **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
@@ -168,6 +206,8 @@ def build_ares_physics(
         best_from: how the best setting is chosen (``"readings"`` or ``"model"``, see
             :class:`FittedModelOptimizer`); default ``"model"`` with a stated screen noise
             (``ctx.noise > 0``), else ``"readings"``.
+        quad_gain_half_width: half width of the quadrupoles' fitted gains (default 0.05; 0:
+            no gains fitted, the 16 unknowns of the incoming beam and misalignments only).
         options: :class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer` options.
     """
     from pigp_torch.optimizers.model_check import CheckedModelOptimizer
@@ -181,7 +221,7 @@ def build_ares_physics(
     if best_from is None:
         best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
     return CheckedModelOptimizer.from_machine_model(
-        ares_machine_model(target),
+        ares_machine_model(target, quad_gain_half_width=quad_gain_half_width),
         bounds=ctx.bounds,
         obs_sd=obs_sd,
         best_from=best_from,

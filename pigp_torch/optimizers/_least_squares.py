@@ -15,6 +15,33 @@ from pigp_torch._utils import DTYPE
 from pigp_torch._utils.lbfgsb import minimize_lbfgsb
 
 
+def row_jacobian(
+    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    X: torch.Tensor,
+    theta: torch.Tensor,
+) -> torch.Tensor:
+    r"""``N x m x P``: :math:`\partial M(x_n, \theta)_j / \partial \theta` of a model that acts
+    row by row, by one backward pass.
+
+    Each row's observables depend on that row's setting and the unknowns only, so the model is
+    evaluated once on the ``m N`` rows of ``X`` repeated ``m`` times, each row with its own copy
+    of ``theta`` (``m N x P``: the model must accept a batch of unknowns aligned with the rows of
+    its settings, as it broadcasts ``theta`` against ``X``); the sum of observable ``j`` over the
+    ``j``-th copy has row ``n``'s gradient in copy ``n`` of ``theta``. Reverse mode, so it also
+    works where forward-mode autograd does not (complex intermediates such as the square root of
+    a quadrupole's strength, when an unknown scales it).
+    """
+    N = X.shape[0]
+    with torch.no_grad():
+        m = model(X[:1], theta.detach()).shape[-1]
+    T = theta.detach().expand(m * N, -1).clone().requires_grad_(True)
+    with torch.enable_grad():
+        out = model(X.repeat(m, 1), T)
+        picked = out.reshape(m, N, m).diagonal(dim1=0, dim2=2)  # N x m: copy j, observable j
+        (grad,) = torch.autograd.grad(picked.sum(), T)
+    return grad.reshape(m, N, -1).permute(1, 0, 2)
+
+
 def fit_unknowns(
     model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     X: torch.Tensor,
@@ -30,7 +57,8 @@ def fit_unknowns(
     weights: torch.Tensor | None = None,
     cost_tol: float = 0.0,
 ) -> tuple[torch.Tensor, float]:
-    r"""Levenberg–Marquardt fit of the normalized unknowns (module docstring, step 1).
+    r"""Levenberg–Marquardt fit of the normalized unknowns (module docstring, step 1), with the
+    Jacobian of :func:`row_jacobian`.
 
     Args:
         model: ``(N x d knobs, P unknowns) -> N x m`` observables, differentiable in the unknowns.
@@ -59,11 +87,11 @@ def fit_unknowns(
 
     r = residual(u).detach()
     cost = float(r @ r)
+    eye = torch.eye(P, dtype=DTYPE)
     lam = 1e-3
     for _ in range(int(max_iter)):
-        J = torch.autograd.functional.jacobian(
-            residual, u, strategy="forward-mode", vectorize=True
-        ).detach()
+        dpred = row_jacobian(model, X, center + half_width * u) * half_width  # N x m x P
+        J = torch.cat([-(root_w.unsqueeze(-1) * dpred / obs_sd).reshape(-1, P), eye / prior_sd])
         A = J.T @ J
         g = J.T @ r
         improved = False

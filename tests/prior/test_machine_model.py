@@ -97,8 +97,9 @@ def test_ares_machine_model_reproduces_the_trial_beam():
 
     trial = load_trials()[3]
     m = ares_machine_model(trial.target)
-    assert m.dim == 5 and len(m.unknown_names) == 16 and m.observable_units == ["m"] * 4
-    theta = torch.cat([trial.incoming[1:9], trial.misalignments])
+    assert m.dim == 5 and len(m.unknown_names) == 19 and m.observable_units == ["m"] * 4
+    assert m.unknown_names[16:] == [f"AREAMQZM{i}_gain" for i in (1, 2, 3)]
+    theta = torch.cat([trial.incoming[1:9], trial.misalignments, torch.ones(3, dtype=D)])
     X = m.bounds[0] + (m.bounds[1] - m.bounds[0]) * torch.rand(
         6, 5, generator=torch.Generator().manual_seed(0), dtype=D
     )
@@ -106,5 +107,9 @@ def test_ares_machine_model_reproduces_the_trial_beam():
     o_model = m.observe(X, theta)
     o_true = AresSegment().observe(X, trial.incoming, trial.misalignments)
     torch.testing.assert_close(o_model, o_true, atol=1e-9, rtol=0)
+    # without gains: the 16 unknowns of the incoming beam and misalignments, the same beam
+    m16 = ares_machine_model(trial.target, quad_gain_half_width=0)
+    assert len(m16.unknown_names) == 16
+    torch.testing.assert_close(m16.observe(X, theta[:16]), o_true, atol=1e-9, rtol=0)
     mae = (o_true - trial.target).abs().mean(-1)
     assert (m.goal(o_true) - mae).abs().max() < 0.5e-6
