@@ -16,8 +16,11 @@ the misalignments), each step
    :math:`1/\sqrt 3`, the standard deviation of a uniform draw on :math:`[-1, 1]`: the unknowns'
    ranges). Solved by Levenberg–Marquardt with the Jacobian of the model by forward-mode autograd,
    warm-started at the previous fit, stopped when the cost drops by less than ``fit_cost_tol``
-   (default 1e-3, in squared noise units). Readings at a setting read before are merged into
-   their mean counted ``n`` times (the same least squares, fewer model rows);
+   (default 1e-3, in squared noise units); a fit that misses the readings by more than 3 noise
+   sd on average is repeated from the prior mean and a few draws of the unknowns' ranges, the
+   best kept (a warm start can hold the fit in a poor local minimum). Readings at a setting
+   read before are merged into their mean counted ``n`` times (the same least squares, fewer
+   model rows);
 2. **asks the model's optimum** of the goal :math:`g(M(x, \hat\theta))` (to minimize, e.g. the mean
    absolute error to a target) inside a trust region: the box of half width :math:`r` (fraction of
    each knob's range) around the best measured setting, clipped to the bounds. The ``n_refine``
@@ -83,6 +86,10 @@ class FittedModelOptimizer(AskTellOptimizer):
         n_candidates, n_refine: Sobol candidates and starts of the ask's search (256, 16).
         maxiter: L-BFGS-B iterations of the polish (default 30).
         fit_iter: Levenberg–Marquardt iterations per fit (default 20).
+        fit_restarts, restart_above: a fit whose cost per observable number exceeds
+            ``restart_above`` squared noise units (default 9) is repeated from the prior mean and
+            ``fit_restarts - 1`` Sobol draws of the unknowns' ranges, the best kept (default 4;
+            0: never).
         residual: ``N x m`` observables ``->`` ``N x r`` residuals whose zero is the goal's
             optimum (e.g. observables minus target; default ``None``: L-BFGS-B on the goal
             only).
@@ -107,6 +114,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         u: the fitted normalized unknowns (``P``); theta: the fitted unknowns.
         fit_cost: the cost of the last fit (all readings); trust: the current trust-region half
             width. n_searches, n_reused: asks that searched / repeated the previous ask.
+            n_restarted: fits repeated from other starts (``restart_above``).
         last_misfit: the largest ``|o - prediction| / obs_sd`` of the last reading.
     """
 
@@ -130,6 +138,8 @@ class FittedModelOptimizer(AskTellOptimizer):
         n_refine: int = 16,
         maxiter: int = 30,
         fit_iter: int = 20,
+        fit_restarts: int = 4,
+        restart_above: float = 9.0,
         residual: Callable[[torch.Tensor], torch.Tensor] | None = None,
         ls_iter: int = 30,
         n_polish: int = 2,
@@ -164,6 +174,11 @@ class FittedModelOptimizer(AskTellOptimizer):
         self.n_refine = int(n_refine)
         self.maxiter = int(maxiter)
         self.fit_iter = int(fit_iter)
+        if not (fit_restarts >= 0 and restart_above > 0):
+            raise ValueError("fit_restarts must be >= 0 and restart_above > 0")
+        self.fit_restarts = int(fit_restarts)
+        self.restart_above = float(restart_above)
+        self.n_restarted = 0
         if best_from not in ("readings", "model"):
             raise ValueError(f"best_from must be 'readings' or 'model', got {best_from!r}")
         if not (reuse_tol >= 0 and search_ftol > 0):
@@ -257,22 +272,51 @@ class FittedModelOptimizer(AskTellOptimizer):
             self._unique_sum.append(o_new)
             self._unique_n.append(1)
             self._group.append(len(self._unique_x) - 1)
-        n = torch.tensor(self._unique_n, dtype=DTYPE)
-        self.u, merged_cost = fit_unknowns(
-            self.model,
-            torch.stack(self._unique_x),
-            torch.stack(self._unique_sum) / n.unsqueeze(-1),
-            self.center,
-            self.half_width,
-            obs_sd=self.obs_sd,
-            prior_sd=self.prior_sd,
-            u0=self.u,
-            max_iter=self.fit_iter,
-            weights=n,
-            cost_tol=self.fit_cost_tol,
-        )
+        self.u, merged_cost = self._fit()
         self.fit_cost = merged_cost + self._scatter()
         self._fit_theta = self.theta.detach().clone()
+
+    def _fit(self) -> tuple[torch.Tensor, float]:
+        r"""The fit of the unknowns to the merged readings, warm-started at the previous fit.
+
+        When its cost per observable number exceeds ``restart_above`` (squared noise units: the
+        model misses the readings by more than 3 noise sd on average), Levenberg–Marquardt may be
+        stuck in a poor local minimum of the warm start: the fit is repeated from the prior mean
+        and from ``fit_restarts - 1`` Sobol draws of the unknowns' ranges (:math:`u \in [-1,
+        1]^P`), each with ``3 fit_iter`` iterations, and the lowest cost is kept.
+        """
+        n = torch.tensor(self._unique_n, dtype=DTYPE)
+        X, O = torch.stack(self._unique_x), torch.stack(self._unique_sum) / n.unsqueeze(-1)
+
+        def fit(u0: torch.Tensor, max_iter: int) -> tuple[torch.Tensor, float]:
+            return fit_unknowns(
+                self.model,
+                X,
+                O,
+                self.center,
+                self.half_width,
+                obs_sd=self.obs_sd,
+                prior_sd=self.prior_sd,
+                u0=u0,
+                max_iter=max_iter,
+                weights=n,
+                cost_tol=self.fit_cost_tol,
+            )
+
+        u, cost = fit(self.u, self.fit_iter)
+        if self.fit_restarts == 0 or cost <= self.restart_above * O.numel():
+            return u, cost
+        self.n_restarted += 1
+        P = self.center.numel()
+        starts = [torch.zeros(P, dtype=DTYPE)]
+        if self.fit_restarts > 1:
+            sobol = torch.quasirandom.SobolEngine(P, scramble=True, seed=self.seed + self.n_told)
+            starts += list(2 * sobol.draw(self.fit_restarts - 1, dtype=DTYPE) - 1)
+        for u0 in starts:
+            u_k, cost_k = fit(u0, 3 * self.fit_iter)
+            if cost_k < cost:
+                u, cost = u_k, cost_k
+        return u, cost
 
     def _scatter(self) -> float:
         """Sum over the readings of their squared deviations from their setting's mean, in noise

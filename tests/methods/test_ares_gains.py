@@ -36,7 +36,7 @@ def test_row_jacobian_matches_forward_mode_and_finite_differences():
     assert R.shape == (7, 4, 16)
     assert float((R - J).abs().max()) <= 1e-10 * float(J.abs().max())
 
-    model, c, h = ares_model_parts()
+    model, _, _ = ares_model_parts()
     gains = torch.tensor([1.03, 0.97, 1.05], dtype=D)
     theta = torch.cat([theta16, gains])
     R = row_jacobian(model, X, theta)

@@ -153,3 +153,38 @@ def test_best_from_model_ignores_a_lucky_noisy_reading():
             y = float((o - target).abs().mean())
             opt.tell(x, y - (1.0 if (i == 1) else 0.0), observables=o)  # one lucky reading
         assert torch.equal(opt.best()[0], X[expected])
+
+
+@pytest.mark.parametrize("u0", [2.2, 1.5, -1.0])
+def test_a_fit_stuck_in_a_local_minimum_restarts_from_the_prior(u0):
+    """o = sin(theta x) read at x = 3, 2.5, ..., 0.5 (theta = 1.3): warm-started far away
+    (theta = 4 u0), the fit without restarts stays in an alias minimum with a cost above 1e5
+    squared noise units; with restarts (cost above 9 per number) it finds theta = 1.3 to 1e-6
+    and a cost at the noise floor."""
+
+    def model(X, th):
+        return torch.sin(th[..., :1] * X)
+
+    results = {}
+    for restarts in (0, 4):
+        opt = FittedModelOptimizer(
+            torch.tensor([[0.5], [3.0]], dtype=D),
+            model=model,
+            goal=lambda o: o.abs().sum(-1),
+            theta_center=torch.tensor([0.0], dtype=D),
+            theta_half_width=torch.tensor([4.0], dtype=D),
+            obs_sd=1e-3,
+            prior_sd=10.0,
+            fit_restarts=restarts,
+        )
+        opt.u = torch.tensor([u0], dtype=D)
+        for x in (3.0, 2.5, 2.0, 1.5, 1.0, 0.5):
+            xx = torch.tensor([x], dtype=D)
+            o = model(xx[None], torch.tensor([1.3], dtype=D))[0]
+            opt.tell(xx, float(o.abs().sum()), observables=o)
+        results[restarts] = opt
+    stuck, restarted = results[0], results[4]
+    assert stuck.fit_cost > 1e5 and abs(float(stuck.theta) - 1.3) > 1.0
+    assert stuck.n_restarted == 0 and restarted.n_restarted >= 1
+    assert float(restarted.theta) == pytest.approx(1.3, abs=1e-6)
+    assert restarted.fit_cost < 0.01
