@@ -3,7 +3,8 @@ r"""Run files of ``pigp optimize``: the schema (pydantic models) of a run config
 A run file (YAML or JSON) names everything a run on a machine needs; it is validated as a whole
 (pydantic v2, unknown keys refused) before anything is connected or moved::
 
-    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access
+    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access;
+                                  # ares-sim: the simulated ARES-EA linac (a published trial)
       kind: sim
       error_seed: 1
       noise: 0.04                 # mA/min
@@ -66,6 +67,7 @@ from pydantic import (
 
 from pigp_torch._utils import DTYPE, max_step_tensor
 from pigp_torch.loop.config.machines import (
+    AresSimConfig,
     EpicsMachineConfig,
     Flag,
     Integer,
@@ -106,7 +108,8 @@ class RunConfig(_Section):
     r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
 
     Attributes:
-        machine: :class:`SimMachineConfig` or :class:`EpicsMachineConfig` (by ``kind``).
+        machine: :class:`SimMachineConfig`, :class:`AresSimConfig` or
+            :class:`EpicsMachineConfig` (by ``kind``).
         knobs: ``{name: (lower, upper)}`` in knob order.
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
@@ -223,9 +226,9 @@ class RunConfig(_Section):
                 "half-range); write max_step: unlimited to run without a step limit on purpose"
             )
         m = self.machine
-        if isinstance(m, SimMachineConfig):
-            if isinstance(m.knob_calibration, dict):
-                _same_knobs("machine.knob_calibration", m.knob_calibration, names)
+        if isinstance(m, SimMachineConfig) and isinstance(m.knob_calibration, dict):
+            _same_knobs("machine.knob_calibration", m.knob_calibration, names)
+        if isinstance(m, (SimMachineConfig, AresSimConfig)):
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
             for name, value in (m.x_init or {}).items():
