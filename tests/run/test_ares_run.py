@@ -13,6 +13,7 @@ from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config import ConfigError
 from pigp_torch.loop.run import build_machine, load_config, validate_config
+from pigp_torch.reporting.dashboard import run_state
 from pigp_torch.simulation.ares import KNOB_NAMES, knob_bounds
 
 LIMITS = knob_bounds()
@@ -73,11 +74,23 @@ def test_ares_physics_runs_online_and_logs_the_beam(tmp_path, capsys):
 def test_published_nm_runs_online_and_logs_the_beam(tmp_path):
     """published-nm, 10 evaluations: its objective is the beam distance (MAE, 100x off the
     screen), minimized without maximize in the run file; the beam is logged with every reading
-    and equals the noise-free beam; the report names the best reading's beam with units."""
-    path = run_file(tmp_path, method={"name": "published-nm"}, budget=10, max_step="unlimited")
+    and equals the noise-free beam; restore: best leaves the knobs at the best reading; the
+    report names the best reading's beam with units and the dashboard reads the log."""
+    path = run_file(
+        tmp_path,
+        machine={"trial": 0},
+        method={"name": "published-nm"},
+        budget=10,
+        max_step="unlimited",
+        restore="best",
+    )
     assert cli.main(["optimize", "--config", path, "--quiet"]) == 0
     log = read_log(tmp_path / "run.jsonl")
     assert log.n_evaluations == 10 and log.header["maximize"] is False
+    i = int(log.Y().argmin())
+    assert i > 0  # the simplex found a better setting than the start
+    assert log.last_end["restored_to"] == "best (confirmed)"  # fresh readings agreed
+    assert log.last_end["final_knobs"] == log.X()[i].tolist()
     obs = log.observables()
     assert torch.equal(obs, noise_free_beam(path, log.X()))
     machine = build_machine(load_config(path))
@@ -86,9 +99,11 @@ def test_published_nm_runs_online_and_logs_the_beam(tmp_path):
     assert len({tuple(x) for x in log.X().tolist()}) > 5  # the simplex moved
     assert cli.main(["report", str(tmp_path / "run.jsonl")]) == 0
     page = (tmp_path / "run_report.html").read_text()
-    i = int(log.Y().argmin())
     assert f"mu_x = {float(obs[i, 0]):.6g} m" in page
     assert f"sigma_y = {float(obs[i, 3]):.6g} m" in page
+    state = run_state(tmp_path / "run.jsonl")  # the dashboard's page reads the same log
+    assert state["n"] == 10 and state["objective_unit"] == "m"
+    assert state["best_y"] == pytest.approx(float(log.Y()[i]), rel=1e-12)
 
 
 @pytest.mark.slow
@@ -173,3 +188,22 @@ def test_defaults_follow_the_method(tmp_path):
     machine = build_machine(config)
     assert machine.objective == "reward" and machine.get().tolist() == [10, -5, 0, 10, 0]
     assert torch.equal(machine.bounds, config.bounds())
+
+
+def test_the_example_runs_as_documented(tmp_path):
+    """examples/run_ares_ea.yaml validates (no warnings, its log next to the examples folder) and
+    runs as is (only its log moved here): every reading logs the beam, and the run ends within
+    40 um of the target."""
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "run_ares_ea.yaml"
+    config = load_config(example)
+    assert config.log.resolve().parent == example.parent.parent / "runs"
+    assert config.warnings() == [] and config.machine.trial < 50
+    data = yaml.safe_load(example.read_text())
+    data["log"] = str(tmp_path / "run.jsonl")
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    assert cli.main(["optimize", "--config", str(tmp_path / "run.yaml"), "--quiet"]) == 0
+    log = read_log(tmp_path / "run.jsonl")
+    assert log.n_evaluations == config.budget and log.observables().shape == (config.budget, 4)
+    assert float(log.Y().min()) < 40 * UM

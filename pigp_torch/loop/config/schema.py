@@ -40,7 +40,8 @@ number belongs (bounds, limits, timings, seeds, the budget) is refused, not conv
 field takes no ``5.0``; ``maximize`` takes ``true`` or ``false`` only.
 
 ``method.name`` is one of the methods that run files accept (``pigp``, ``pigp-fast``,
-``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``; :mod:`pigp_torch.methods` describes them)
+``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``, and on ``kind: ares-sim`` also
+``ares-physics``, ``published-bo``, ``published-nm``; :mod:`pigp_torch.methods` describes them)
 and ``method.options`` are its builder's options. This module checks the file's structure only;
 the method, its options and the prior file are checked against the method registry by
 :func:`pigp_torch.loop.run.validate_config` (which ``pigp optimize`` calls).
