@@ -226,7 +226,9 @@ def start_run(objective, optimizer, x0, budget: int, *, knob_names, method, resu
               names, label, bool(getattr(optimizer, "maximize", True)))  # fmt: skip
     if is_machine:
         _machine_limits(run, d)
-    if getattr(optimizer, "uses_observables", False) and not hasattr(objective, "last_observables"):
+    if getattr(optimizer, "uses_observables", False) and not getattr(
+        objective, "observable_names", None
+    ):
         raise ValueError(f"{label} fits the observables of each reading; this machine reports none")
     run.objective_range = opts.objective_range
     if run.objective_range is None and is_machine:

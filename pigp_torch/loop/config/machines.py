@@ -148,7 +148,10 @@ class EpicsMachineConfig(_Section):
     a reading may wait for the objective PV's timestamp to advance. ``protocol``: ``ca``
     (Channel Access, :class:`~pigp_torch.machine.epics.EpicsMachine`, default) or ``pva``
     (pvAccess, :class:`~pigp_torch.machine.pva.PvaMachine`, the ``pva`` extra; the client is
-    configured from ``EPICS_PVA_*`` in the environment).
+    configured from ``EPICS_PVA_*`` in the environment). ``observable_pvs`` (``{name: PV}``,
+    default none): what each reading also measures (e.g. a screen's beam numbers), read after
+    the objective, logged with every evaluation and told to the methods that fit them;
+    ``observable_units`` (``{name: unit}``) their units.
     """
 
     kind: Literal["epics"]
@@ -164,11 +167,23 @@ class EpicsMachineConfig(_Section):
     average_interval: Number = Field(0.0, ge=0.0)
     timeout: Number = Field(2.0, gt=0.0)
     stale_timeout: Number = Field(10.0, gt=0.0)
+    observable_pvs: dict[str, str] | None = None
+    observable_units: dict[str, str] | None = None
 
     @model_validator(mode="after")
     def _one_tolerance(self) -> EpicsMachineConfig:
         if self.tolerance is not None and self.tolerance_fraction is not None:
             raise ValueError("give tolerance (knob units) or tolerance_fraction, not both")
+        pvs, units = self.observable_pvs, self.observable_units
+        if pvs is not None:
+            empty = [k for k, v in pvs.items() if not k.strip() or not v.strip()]
+            if empty or not pvs:
+                raise ValueError(f"machine.observable_pvs: give {{name: PV}}, got {pvs}")
+        if units is not None and set(units) != set(pvs or {}):
+            raise ValueError(
+                f"machine.observable_units: name the unit of every observable of "
+                f"observable_pvs {sorted(pvs or {})}, got {sorted(units)}"
+            )
         return self
 
 

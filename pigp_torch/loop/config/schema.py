@@ -286,14 +286,16 @@ class RunConfig(_Section):
         return [f"max_step above 10 % of the knob's range: {', '.join(big)}"]
 
     def pv_names(self) -> list[str]:
-        """Every PV the run uses (setpoints, readbacks, objective); empty for the simulator."""
+        """Every PV the run uses (setpoints, readbacks, objective, observables); empty for the
+        simulators."""
         m = self.machine
         if not isinstance(m, EpicsMachineConfig):
             return []
         names = self.knob_names
         sp = m.setpoint_pvs or {n: f"{n}{m.setpoint_suffix}" for n in names}
         rb = m.readback_pvs or {n: f"{n}{m.readback_suffix}" for n in names}
-        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv)]
+        obs = list((m.observable_pvs or {}).values())
+        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv), *obs]
 
     def safety_lines(self) -> list[str]:
         """The safety limits of the run, one line each (printed when a run is resumed from the

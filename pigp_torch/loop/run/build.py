@@ -160,6 +160,8 @@ def build_machine(config: RunConfig):
         stale_timeout=m.stale_timeout,
         max_step=config.machine_max_step(),
         read_retries=0,  # the loop retries (config.read_retries), for every machine alike
+        observable_pvs=m.observable_pvs,
+        observable_units=m.observable_units,
     )
 
 
