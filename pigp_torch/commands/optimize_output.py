@@ -49,13 +49,15 @@ def print_plan(setup, records, out) -> None:
         f" the objective ({yu}), options {c.method.options or '{}'}, seed {c.method.seed}",
         file=out,
     )
-    head = "".join(f"{h + ' (' + ku + ')':>14}" for h in ("lower", "upper", "now", "max step"))
-    print(f"  {'knob':<14}{head}", file=out)
+    units = getattr(setup.machine, "knob_units", None)  # one per knob: a column of its own
+    heads = ("lower", "upper", "now", "max step")
+    head = "".join(f"{h if units else h + ' (' + ku + ')':>14}" for h in heads)
+    print(f"  {'knob':<14}{head}{'  unit' if units else ''}", file=out)
     for i, n in enumerate(names):
         step = "none" if limit is None else f"{float(limit[i]):.4g}"
         print(
             f"  {n:<14}{float(bounds[0, i]):>14.4g}{float(bounds[1, i]):>14.4g}"
-            f"{now[i]:>14.4g}{step:>14}",
+            f"{now[i]:>14.4g}{step:>14}{'  ' + units[i] if units else ''}",
             file=out,
         )
     floor = "none" if c.objective_floor is None else f"{c.objective_floor:g} {yu}"

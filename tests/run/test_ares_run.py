@@ -14,7 +14,7 @@ from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config import ConfigError
 from pigp_torch.loop.run import build_machine, load_config, validate_config
 from pigp_torch.reporting.dashboard import run_state
-from pigp_torch.simulation.ares import KNOB_NAMES, knob_bounds
+from pigp_torch.simulation.ares import KNOB_NAMES, KNOB_UNITS, knob_bounds
 
 LIMITS = knob_bounds()
 KNOBS = {n: [float(LIMITS[0, i]), float(LIMITS[1, i])] for i, n in enumerate(KNOB_NAMES)}
@@ -54,8 +54,12 @@ def test_ares_physics_runs_online_and_logs_the_beam(tmp_path, capsys):
     to the target (minimized, in m), and the best reading is within 40 um of the target."""
     path = run_file(tmp_path)
     assert cli.main(["optimize", "--config", path, "--quiet"]) == 0
-    assert "simulated ARES-EA linac (trial 3" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "simulated ARES-EA linac (trial 3" in out
+    plan = [line.split() for line in out.splitlines() if line.strip().startswith("AREAM")]
+    assert [row[-1] for row in plan] == list(KNOB_UNITS)  # the plan gives each knob its unit
     log = read_log(tmp_path / "run.jsonl")
+    assert log.header["knob_units"] == list(KNOB_UNITS)
     assert log.n_evaluations == 8 and log.last_end["status"] == "completed"
     assert log.observable_names == ["mu_x", "sigma_x", "mu_y", "sigma_y"]
     assert log.observable_units == ["m"] * 4
