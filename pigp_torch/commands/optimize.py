@@ -308,7 +308,7 @@ def _run(args, setup, records, log_lock) -> int:
         config.budget,
         config.knob_names,
         maximize=config.objective.maximize,
-        unit=config.knob_unit,
+        unit=getattr(setup.machine, "knob_units", None) or config.knob_unit,
         objective_unit=config.objective_unit,
         out=out,
     )

@@ -28,6 +28,13 @@ def print_plan(setup, records, out) -> None:
             f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
             f"{m.noise:g} {yu}, noise seed {m.seed})"
         )
+    elif m.kind == "ares-sim":
+        where = "the shipped trials" if m.trials is None else str(m.trials)
+        machine = (
+            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
+            f"screen noise {m.noise:g} m, noise seed {m.seed}; objective "
+            f"{getattr(setup.machine, 'objective', '?')})"
+        )
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"
     from pigp_torch.loop import effective_max_step
@@ -42,13 +49,15 @@ def print_plan(setup, records, out) -> None:
         f" the objective ({yu}), options {c.method.options or '{}'}, seed {c.method.seed}",
         file=out,
     )
-    head = "".join(f"{h + ' (' + ku + ')':>14}" for h in ("lower", "upper", "now", "max step"))
-    print(f"  {'knob':<14}{head}", file=out)
+    units = getattr(setup.machine, "knob_units", None)  # one per knob: a column of its own
+    heads = ("lower", "upper", "now", "max step")
+    head = "".join(f"{h if units else h + ' (' + ku + ')':>14}" for h in heads)
+    print(f"  {'knob':<14}{head}{'  unit' if units else ''}", file=out)
     for i, n in enumerate(names):
         step = "none" if limit is None else f"{float(limit[i]):.4g}"
         print(
             f"  {n:<14}{float(bounds[0, i]):>14.4g}{float(bounds[1, i]):>14.4g}"
-            f"{now[i]:>14.4g}{step:>14}",
+            f"{now[i]:>14.4g}{step:>14}{'  ' + units[i] if units else ''}",
             file=out,
         )
     floor = "none" if c.objective_floor is None else f"{c.objective_floor:g} {yu}"

@@ -48,7 +48,8 @@ class ProgressLine:
         budget: ``M``, the evaluations of the run (start point included; > 0).
         knob_names: the knob columns of the rows (their order).
         maximize: direction of "best" (default: the largest reading).
-        unit: knob unit printed after the move (``"A"`` on SPEAR3; default none).
+        unit: knob unit printed after the move (``"A"`` on SPEAR3; default none), or one unit
+            per knob (knobs of different kinds, e.g. a linac's k1 in 1/m^2 and angles in rad).
         objective_unit: unit printed after the reading and the best (``"mA/min"`` for the loss
             rate; default none).
         label: text put before the line (e.g. the method), default none.
@@ -65,7 +66,7 @@ class ProgressLine:
         knob_names: Sequence[str],
         *,
         maximize: bool = True,
-        unit: str = "",
+        unit: str | Sequence[str] = "",
         objective_unit: str = "",
         label: str = "",
         out=None,
@@ -78,7 +79,11 @@ class ProgressLine:
         if not self.knob_names:
             raise ValueError("no knob names")
         self.maximize = bool(maximize)
-        self.unit = str(unit)
+        per_knob = not isinstance(unit, str)
+        self.unit = ", ".join(dict.fromkeys(map(str, unit))) if per_knob else str(unit)
+        self.units = [str(u) for u in unit] if per_knob else [self.unit] * len(self.knob_names)
+        if len(self.units) != len(self.knob_names):
+            raise ValueError(f"{len(self.units)} knob units for {len(self.knob_names)} knobs")
         self.objective_unit = str(objective_unit)
         self.label = str(label)
         self.out = out
@@ -111,7 +116,7 @@ class ProgressLine:
         else:
             delta = (torch.tensor(x, dtype=DTYPE) - torch.tensor(self.previous, dtype=DTYPE)).abs()
             i = int(delta.argmax())
-            unit = f" {self.unit}" if self.unit else ""
+            unit = f" {self.units[i]}" if self.units[i] else ""
             move = f"move {float(delta[i]):.3g}{unit} ({self.knob_names[i]})"
         self.previous = x
         head = f"{self.label}  " if self.label else ""

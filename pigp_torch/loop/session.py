@@ -25,7 +25,7 @@ from pigp_torch.loop.moves import (
 )
 from pigp_torch.loop.options import RunOptions
 from pigp_torch.loop.readings import ReadingJudge
-from pigp_torch.loop.steps import knob_columns, logged_initial_knobs, run_steps
+from pigp_torch.loop.steps import knob_columns, logged_initial_knobs, observables_of, run_steps
 from pigp_torch.machine.base import Machine, check_setting
 
 
@@ -226,6 +226,10 @@ def start_run(objective, optimizer, x0, budget: int, *, knob_names, method, resu
               names, label, bool(getattr(optimizer, "maximize", True)))  # fmt: skip
     if is_machine:
         _machine_limits(run, d)
+    if getattr(optimizer, "uses_observables", False) and not getattr(
+        objective, "observable_names", None
+    ):
+        raise ValueError(f"{label} fits the observables of each reading; this machine reports none")
     run.objective_range = opts.objective_range
     if run.objective_range is None and is_machine:
         run.objective_range = getattr(objective, "objective_limits", None)
@@ -243,6 +247,10 @@ def open_log(run: Run, log: RunLog | str | Path | None, resume) -> None:
             header = {"knob_names": run.names, "method": run.label, "budget": run.budget}
             if run.bounds is not None:
                 header["bounds"] = run.bounds.tolist()
+            for key in ("observable_names", "observable_units"):  # what a reading also measures
+                value = getattr(run.objective, key, None)
+                if value is not None:
+                    header[key] = [str(v) for v in value]
             log = RunLog.create(log, header)
     run.log, run.own_log = log, own_log
     if log is not None and log.header.get("knob_names") not in (None, run.names):
@@ -274,6 +282,7 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
         x_found=run.x_found,
         rb_found=run.rb_found,
         reading_info=(lambda: getattr(objective, "last_reading", None)),
+        observables=lambda: observables_of(objective),
         callback=callback,
         progress=progress,
         objective_floor=run.opts.objective_floor,

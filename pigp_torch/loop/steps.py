@@ -9,7 +9,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils import utc_now as _utc_now
-from pigp_torch.data.runlog import RunRecords
+from pigp_torch.data.runlog import RunRecords, tell
 from pigp_torch.loop.signals import RunAborted, SignalGuard
 
 _RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
@@ -49,6 +49,15 @@ def best_row(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
     return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
 
 
+def observables_of(objective) -> list[float] | None:
+    """The observables of a machine's last reading (``last_observables``, e.g. the four beam
+    numbers on a screen) as floats; ``None`` for a machine (or callable) without them."""
+    obs = getattr(objective, "last_observables", None)
+    if obs is None:
+        return None
+    return [float(v) for v in torch.as_tensor(obs, dtype=DTYPE).reshape(-1).tolist()]
+
+
 def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int) -> None:
     """The start record: the restore target, and the knobs found when they differ from it."""
     extra = {}
@@ -73,6 +82,7 @@ def run_steps(
     x_initial,
     x_found,
     reading_info,
+    observables=lambda: None,
     rb_found=None,
     callback,
     progress,
@@ -80,7 +90,8 @@ def run_steps(
     guard: SignalGuard,
 ) -> None:
     """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`; appends to ``rows`` as
-    it goes."""
+    it goes. ``observables()`` gives those of the evaluation's reading (the last one taken) or
+    ``None``: they are logged with it and told to an optimizer that fits them."""
     if log is not None:
         _log_start(log, x_initial, x_found, rb_found, budget, first)
     bar = None
@@ -107,6 +118,7 @@ def run_steps(
             t0 = time.perf_counter()
             y, reads = evaluate(x, step=step)  # every move a checked ramp
             info = reading_info()
+            obs = observables()
             eval_time = time.perf_counter() - t0
             row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
             row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
@@ -118,10 +130,11 @@ def run_steps(
                         step, x, y, reads=reads, t_set=t_set, t_read=time.time(),
                         ask_time_s=ask_time, eval_time_s=eval_time,
                         **({"reading": info} if isinstance(info, dict) else {}),
+                        **({"observables": obs} if obs is not None else {}),
                     )  # fmt: skip
                 rows.append(row)
             t0 = time.perf_counter()
-            optimizer.tell(x, y)
+            tell(optimizer, x, y, obs)
             row["ask_time_s"] = ask_time + (time.perf_counter() - t0)
             if callback is not None:
                 callback(dict(row))

@@ -68,15 +68,19 @@ class AresMachine(GuardedMachine):
             :class:`~pigp_torch.machine.base.GuardedMachine`), or ``None``.
         x_init: the initial setting (default the published start [10, −10, 0, 10, 0]).
         segment: an :class:`~pigp_torch.simulation.ares.AresSegment` to share (default: new).
+        bounds: ``2 x 5`` knob bounds inside the magnets' ranges (default: those ranges,
+            :func:`~pigp_torch.simulation.ares.knob_bounds` with ``unidirectional``).
 
     Attributes:
-        knob_units: units of the knobs; observable_names: the four observables.
+        knob_units: units of the knobs; observable_names: the four observables;
+        observable_units: their units (m).
         maximize: whether ``read()`` is to be maximized.
         last_observables: ``4`` observables of the last reading (m), ``None`` before the first.
         n_reads: readings taken so far.
     """
 
     observable_names: tuple[str, ...] = OBSERVABLE_NAMES
+    observable_units: tuple[str, ...] = ("m",) * len(OBSERVABLE_NAMES)
     knob_units: tuple[str, ...] = KNOB_UNITS
 
     def __init__(
@@ -90,6 +94,7 @@ class AresMachine(GuardedMachine):
         max_step=None,
         x_init=None,
         segment: AresSegment | None = None,
+        bounds=None,
     ) -> None:
         if objective not in ARES_OBJECTIVES:
             raise ValueError(
@@ -100,8 +105,18 @@ class AresMachine(GuardedMachine):
             raise ValueError(f"screen noise must be finite and >= 0 m, got {noise}")
         self.segment = AresSegment() if segment is None else segment
         x0 = torch.tensor(START_SETTING, dtype=DTYPE) if x_init is None else x_init
+        limits = knob_bounds(unidirectional, self.segment.lattice)
+        if bounds is not None:
+            bounds = torch.as_tensor(bounds, dtype=DTYPE)
+            if bounds.shape != limits.shape or bool(
+                (bounds[0] < limits[0]).any() or (bounds[1] > limits[1]).any()
+            ):
+                raise ValueError(
+                    f"knob bounds {bounds.tolist()} are not inside the magnets' ranges "
+                    f"{limits.tolist()}"
+                )
         super().__init__(
-            knob_bounds(unidirectional, self.segment.lattice),
+            limits if bounds is None else bounds,
             self.segment.knob_names,
             max_step=max_step,
             x_init=x0,

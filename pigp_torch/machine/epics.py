@@ -102,6 +102,10 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         stale_poll: seconds between reads of a stale objective PV (> 0; default 0.05).
         check_control_limits: refuse bounds outside the setpoint PVs' control limits (default
             true).
+        observable_pvs: ``{name: PV}`` of what each reading also measures (e.g. a screen's
+            beam numbers), read once after the objective (default ``None``: none).
+        observable_units: ``{name: unit}`` for every name of ``observable_pvs`` (default:
+            ``""`` each).
 
     Raises:
         ValueError: inconsistent names/bounds/options, readbacks outside the bounds at start, or
@@ -115,6 +119,8 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         last_reading: ``{"stamps": [...], "values": [...], "stale_polls": n}`` of the last
             :meth:`read` (CA timestamps of its readings, UNIX seconds; the readings averaged;
             reads of a value not yet updated).
+        observable_names, observable_units: the observables' names and units (``None``
+            without observable PVs); last_observables: ``m`` values of the last :meth:`read`.
 
     Not thread-safe: use one machine from one thread. Use as a context manager (or call
     :meth:`close`) to release the CA connections.
@@ -146,6 +152,8 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         stale_timeout: float = 10.0,
         stale_poll: float = 0.05,
         check_control_limits: bool = True,
+        observable_pvs: dict[str, str] | None = None,
+        observable_units: dict[str, str] | None = None,
     ) -> None:
         # Everything that can be checked without the control system is checked first.
         names = [str(n) for n in knob_names]
@@ -161,6 +169,7 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         if not isinstance(objective_pv, str) or not objective_pv:
             raise ValueError(f"objective_pv must be a non-empty PV name, got {objective_pv!r}")
         self.objective_pv = objective_pv
+        self._observables(observable_pvs, observable_units)
         self.settle_time = self._nonneg(settle_time, "settle_time")
         self.average_interval = self._nonneg(average_interval, "average_interval")
         self.retry_interval = self._nonneg(retry_interval, "retry_interval")
@@ -187,7 +196,8 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         self._ca = self._adapter_class(context, timeout=self.timeout)
         try:
             missing = self._ca.connect(
-                [*self.setpoint_pvs, *self.readback_pvs, objective_pv], self.timeout
+                [*self.setpoint_pvs, *self.readback_pvs, objective_pv, *self.observable_pvs],
+                self.timeout,
             )
             if missing:
                 raise MachineError(
@@ -235,6 +245,18 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         if len(set(pvs)) != len(pvs):
             raise ValueError(f"{what} must be unique")
         return pvs
+
+    def _observables(self, pvs: dict[str, str] | None, units: dict[str, str] | None) -> None:
+        pvs = dict(pvs or {})
+        if units is not None and set(units) != set(pvs):
+            raise ValueError(f"observable_units {sorted(units)} must name every observable "
+                             f"{sorted(pvs)}")  # fmt: skip
+        if any(not isinstance(pv, str) or not pv for pv in pvs.values()):
+            raise ValueError(f"observable_pvs must map names to non-empty PV names, got {pvs}")
+        self.observable_pvs = list(pvs.values())
+        self.observable_names = tuple(pvs) or None
+        self.observable_units = tuple(str((units or {}).get(n, "")) for n in pvs) or None
+        self.last_observables = None
 
     @staticmethod
     def _nonneg(value, name: str) -> float:

@@ -18,8 +18,9 @@ class StaleReadingError(ReadError):
 
 class ObjectiveReader:
     """The objective reads of :class:`~pigp_torch.machine.epics.EpicsMachine` (a mixin: it uses
-    the machine's client ``_ca``, ``objective_pv``, ``timeout``, the read settings, the counters
-    ``n_reads`` / ``n_invalid_readings``, ``_last_stamp`` and ``_check_open``)."""
+    the machine's client ``_ca``, ``objective_pv``, ``observable_pvs``, ``timeout``, the read
+    settings, the counters ``n_reads`` / ``n_invalid_readings``, ``_last_stamp`` and
+    ``_check_open``)."""
 
     def _fresh_reading(self, info: dict) -> float:
         """One reading whose timestamp is newer than the previous valid one (polls while not).
@@ -78,13 +79,38 @@ class ObjectiveReader:
             ReadError: a reading was still invalid (NaN/inf, timeout, disconnected) after
                 ``read_retries`` retries.
             StaleReadingError: the objective PV did not update within ``stale_timeout``.
+
+        With observable PVs (``observable_pvs``) they are read once after the objective's
+        readings and kept in ``last_observables`` (``None`` until a read succeeds); their
+        timestamps are not checked.
         """
         self._check_open()
         info: dict = {"stamps": [], "values": [], "stale_polls": 0}
         self.last_reading = info
+        self.last_observables = None  # never those of an earlier reading
         total = 0.0
         for k in range(self.n_average):
             if k > 0 and self.average_interval > 0:
                 time.sleep(self.average_interval)
             total += self._one_reading(info)
+        if self.observable_pvs:
+            self.last_observables = self._read_observables()
         return total / self.n_average
+
+    def _read_observables(self):
+        """The observable PVs read once, after the objective's readings: ``m`` float64.
+
+        Raises:
+            ReadError: a PV could not be read or is not finite (the loop reads again).
+        """
+        import torch
+
+        try:
+            values = self._ca.read_many(self.observable_pvs, self.timeout)
+        except MachineError as err:
+            raise ReadError(f"observables: {err}") from err
+        pvs = self.observable_pvs
+        bad = [pv for pv, v in zip(pvs, values, strict=True) if not math.isfinite(v)]
+        if bad:
+            raise ReadError(f"non-finite observable readings of {bad}")
+        return torch.tensor(values, dtype=torch.float64)

@@ -16,8 +16,8 @@ one module with its builder and one :func:`register` call below.
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
 * ``published-bo``, ``published-nm``: the published recipes of the ARES-EA linac task, and
-  ``ares-physics``, its model's unknowns fitted online (:mod:`~pigp_torch.methods.ares`; not in
-  run files).
+  ``ares-physics``, its model's unknowns fitted online (:mod:`~pigp_torch.methods.ares`; in run
+  files on the simulated linac, ``machine: {kind: ares-sim}``).
 * benchmark variants (not in run files): ``pigp-zero-mean``, ``pigp`` with a zero prior mean
   (Fig. 2c); ``pigp-physics-box``, ``pigp-physics`` with what the model ring alone gives (its own
   shape and the isotropic box prior on the centre, 1 half-range; no error ensemble).
@@ -45,7 +45,10 @@ from pigp_torch.methods.xopt import TRAVEL_FRACTION, build_xopt_pigp, build_xopt
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
+from pigp_torch.optimizers.ares_published import PublishedAresBO
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
+from pigp_torch.optimizers.model_check import CheckedModelOptimizer
+from pigp_torch.optimizers.model_fit import FittedModelOptimizer
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 
 _BO = {"forwards_to": (BayesOpt,), "fixed": ("model", "seed")}
@@ -104,9 +107,31 @@ register(
 )
 register(MethodSpec("xopt-pigp", build_xopt_pigp, "gp"))
 # ARES-EA (linac, screen): the published recipes (pigp_torch.methods.ares)
-register(MethodSpec("published-bo", build_published_bo, "gp", machine="ares-ea"))
-register(MethodSpec("published-nm", build_published_nm, "direct", machine="ares-ea"))
-register(MethodSpec("ares-physics", build_ares_physics, "gp", machine="ares-ea"))
+# (run files: on machine kind ares-sim only, pigp_torch.loop.run.ares)
+_ARES = {"machine": "ares-ea", "run_file": True}
+register(
+    MethodSpec(
+        "published-bo",
+        build_published_bo,
+        "gp",
+        forwards_to=(PublishedAresBO,),
+        fixed=("x0", "seed"),
+        **_ARES,
+    )
+)
+register(
+    MethodSpec("published-nm", build_published_nm, "direct", forwards_to=(NelderMead,), **_ARES)
+)
+register(
+    MethodSpec(
+        "ares-physics",
+        build_ares_physics,
+        "gp",
+        forwards_to=(CheckedModelOptimizer, FittedModelOptimizer),
+        fixed=("model", "goal", "theta_center", "theta_half_width", "residual", "seed"),
+        **_ARES,
+    )
+)
 
 __all__ = [
     "BO_DEFAULTS",

@@ -6,7 +6,8 @@ evaluation number:
 * the readings with the noise band (:math:`\pm\sigma_n`: the simulated machine's noise, else the
   prior's, else the ``noise`` argument; no band when none is known), the best reading so far and,
   for a run on the simulated ring, the noise-free value at every setting, its best so far and the
-  machine's true optimum within the run's bounds (a converged run reaches that line);
+  machine's true optimum within the run's bounds (a converged run reaches that line); for a run
+  on the simulated ARES-EA linac, the noise-free objective at every setting;
 * the knob trajectories in knob units with their limits (the run's bounds), each knob in its own
   colour (``tab20``; beyond 20 knobs the line style changes too), and for
   ``pigp-physics`` the fitted centre of the physics form at the end of the run with
@@ -14,7 +15,9 @@ evaluation number:
 * the fitted optimum (``pigp-physics``: the form refitted to all readings, its predicted value
   :math:`\pm 2\sigma` at the best setting inside the box);
 * the run's notices: sessions (resumes), discarded readings, knobs reaching a limit, the end
-  status and reason, a fitted centre outside the box.
+  status and reason, a fitted centre outside the box;
+* in the summary, for a machine that measures observables with its objective (a screen's beam
+  numbers), those of the best reading with their units.
 
 :func:`compare_report` draws a ``pigp compare`` / ``pigp demo`` folder (``runs.csv``): the gain
 fraction (median and interquartile range over machines) and the best noise-free value per method.
@@ -91,7 +94,8 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         ``None``), ``optimum`` (simulated, maximized runs: ``(x_star, f_star)``, the machine's
         true optimum within the run's bounds; else ``None``), ``fit``
         (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings), ``budget``,
-        ``status``.
+        ``status``, ``observables`` (``n x m`` what each reading also measured, or ``None``),
+        ``observable_names`` and ``observable_units`` (the header's, ``[]`` without).
 
     Raises:
         FileNotFoundError: no such log.
@@ -117,6 +121,11 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
         if maximize and bounds is not None:
             optimum = _true_optimum(machine, bounds, X[int(true.argmax())])
+    elif config is not None and config.machine.kind == "ares-sim":
+        from pigp_torch.loop.run import build_machine
+
+        machine = build_machine(config)  # the simulated linac: its objective of the true beam
+        true = machine.objective_of(machine.true_observables(X)).to(DTYPE)
     elif config is not None and config.prior is not None and sigma is None:
         from pigp_torch.prior import PhysicsPrior
 
@@ -144,6 +153,9 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         "notices": notices,
         "budget": (records.starts[-1].get("budget") if records.starts else None) or len(Y),
         "status": "running (no end record)" if end is None else end["status"],
+        "observables": records.observables(),
+        "observable_names": records.observable_names,
+        "observable_units": records.observable_units,
     }
 
 
@@ -256,6 +268,14 @@ def _summary(data: dict) -> list[str]:
     ys = f" {yu}" if yu else ""
     i = int(Y.argmax() if data["maximize"] else Y.argmin())
     lines = [f"best reading {float(Y[i]):.6g}{ys} at evaluation {i + 1} of {len(Y)}"]
+    obs, obs_names = data.get("observables"), data.get("observable_names") or []
+    if obs is not None and len(obs_names) == obs.shape[1]:
+        units = data.get("observable_units") or [""] * len(obs_names)
+        values = ", ".join(
+            f"{n} = {float(v):.6g}{' ' + u if u else ''}"
+            for n, v, u in zip(obs_names, obs[i], units, strict=True)
+        )
+        lines.append(f"observables of the best reading: {values}")
     if data["noise"]:
         lines.append(f"reading noise σ = {data['noise']:g}{ys}")
     if data["true"] is not None:

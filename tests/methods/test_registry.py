@@ -22,8 +22,11 @@ D = torch.float64
 BOUNDS = torch.tensor([[-1.0, -2.0], [1.0, 2.0]], dtype=D)
 
 
-def test_run_files_accept_the_six_methods_in_their_order():
-    assert run_file_methods() == ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "rcds")
+def test_run_files_accept_the_nine_methods_in_their_order():
+    """The six of any ring, then the three of the ARES-EA linac (machine kind: ares-sim)."""
+    ring = ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "rcds")
+    assert run_file_methods() == (*ring, "published-bo", "published-nm", "ares-physics")
+    assert {METHODS[n].machine for n in run_file_methods()} == {None, "ares-ea"}
 
 
 def test_every_method_name_is_known_to_the_benchmark():

@@ -17,7 +17,10 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
 * ``evaluation`` (one per measurement): ``step`` (0, 1, ...), ``x`` (knob values in
   ``knob_names`` order), ``y``, ``reads`` (read attempts it took), ``t_set`` / ``t_read`` (UNIX
   times before the move and after the reading), ``ask_time_s`` and ``eval_time_s``, and
-  ``reading`` (what the machine reports about the reading, e.g. the objective PV's timestamps).
+  ``reading`` (what the machine reports about the reading, e.g. the objective PV's timestamps)
+  and, from a machine that measures more than its objective, ``observables`` (the values of its
+  last reading, in the order of the header's ``observable_names``, units
+  ``observable_units``; e.g. a screen's four beam numbers in m).
 * ``end`` (one per session that ended in Python): ``status`` (``"completed"``,
   ``"interrupted"``, ``"aborted"`` or ``"failed"``), ``reason``, ``restored_to``,
   ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations`` and, on a machine,
@@ -67,7 +70,7 @@ from pigp_torch.data.runlog.format import (
     file_sha256,
 )
 from pigp_torch.data.runlog.reader import RunRecords, read_log
-from pigp_torch.data.runlog.replay import evaluation_rows, replay
+from pigp_torch.data.runlog.replay import evaluation_rows, replay, tell
 from pigp_torch.data.runlog.writer import RunLog
 
 __all__ = [
@@ -88,5 +91,6 @@ __all__ = [
     "file_sha256",
     "read_log",
     "replay",
+    "tell",
     "utc_now",
 ]

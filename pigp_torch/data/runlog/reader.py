@@ -99,6 +99,23 @@ class RunRecords:
         """``n`` readings."""
         return torch.tensor([r["y"] for r in self.evaluations], dtype=DTYPE)
 
+    @property
+    def observable_names(self) -> list[str]:
+        """Names of the observables each reading also measured (the header's; ``[]``: none)."""
+        return list(self.header.get("observable_names") or [])
+
+    @property
+    def observable_units(self) -> list[str]:
+        """Units of :attr:`observable_names` (``[]`` when the header names none)."""
+        return list(self.header.get("observable_units") or [])
+
+    def observables(self) -> torch.Tensor | None:
+        """``n x m`` observables of the readings (header order), ``None`` unless every
+        evaluation has them (a log of a machine without observables, or an older log)."""
+        if not self.evaluations or any("observables" not in r for r in self.evaluations):
+            return None
+        return torch.tensor([r["observables"] for r in self.evaluations], dtype=DTYPE)
+
     def best(self, maximize: bool = True) -> tuple[int, torch.Tensor, float] | None:
         """``(step, x, y)`` of the best reading (first on ties), ``None`` without evaluations."""
         if not self.evaluations:
@@ -111,14 +128,14 @@ class RunRecords:
 def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> RunRecords:
     r"""Read and check a run log.
 
-    Checks: the first record is a header with the expected format tag and version; every record
-    has a known type; evaluation steps are ``0, 1, 2, ...`` with ``x`` of ``len(knob_names)``
-    finite values and a finite ``y``; with ``verify`` (default) every record of a version-3 log
+    Checks: the first record is a header with the expected format tag and version; every record has
+    a known type; evaluation steps are ``0, 1, 2, ...`` with ``x`` of ``len(knob_names)`` finite
+    values and a finite ``y`` (and ``observables``, where logged, finite values, one per name of the
+    header's ``observable_names``); with ``verify`` (default) every record of a version-3 log
     matches the hash chain (:mod:`pigp_torch.data.runlog.format`), so a log edited anywhere is
-    refused with the first line that does not match. A last line without its final newline was
-    cut short by an interrupted write (the writer ends every record with one): it is skipped;
-    an invalid line elsewhere is an error. A log of an older version (no chain) is read but
-    cannot be verified.
+    refused with the first line that does not match. A last line without its final newline was cut
+    short by an interrupted write (the writer ends every record with one): it is skipped; an invalid
+    line elsewhere is an error. A log of an older version (no chain) is read but cannot be verified.
 
     Each returned record carries ``_line`` (its 1-based line number).
 
@@ -202,6 +219,7 @@ def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> Run
             out.notices.append(rec)
         else:
             _check_evaluation(rec, len(out.evaluations), d, path)
+            _check_observables(rec, len(out.observable_names) or None, path)
             d = d or len(rec["x"])
             out.evaluations.append(rec)
     if warn:
@@ -248,3 +266,16 @@ def _check_evaluation(rec: dict, expected_step: int, d: int | None, path: Path) 
     values = [*x, y]
     if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
         raise ValueError(f"{where}: x and y must be finite numbers")
+
+
+def _check_observables(rec: dict, m: int | None, path: Path) -> None:
+    obs = rec.get("observables")
+    if obs is None:
+        return
+    where = f"{path}:{rec['_line']}"
+    if not isinstance(obs, list) or (m is not None and len(obs) != m):
+        raise ValueError(f"{where}: observables must be a list of {m} values")
+    if not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in obs
+    ):
+        raise ValueError(f"{where}: observables must be finite numbers")

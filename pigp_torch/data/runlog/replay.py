@@ -37,8 +37,9 @@ def replay(
     each knob's range, and then told the logged ``(x, y)``. Asking is what makes the rebuilt state
     exact: direct-search coroutines advance their generators, model factories with internal state
     (e.g. warm-started hyperparameters) see the same sequence of calls, and the check proves the
-    log and the optimizer agree. The cost is one ``ask`` per record (a GP fit and an acquisition
-    optimization for BayesOpt).
+    log and the optimizer agree. A record's logged ``observables`` are told with it to an
+    optimizer that fits them (``uses_observables``). The cost is one ``ask`` per record (a GP
+    fit and an acquisition optimization for BayesOpt).
 
     Args:
         optimizer: a fresh ask/tell optimizer.
@@ -73,10 +74,21 @@ def replay(
                     "the logged run"
                 )
         try:
-            optimizer.tell(x, float(rec["y"]))
+            obs = rec.get("observables")
+            tell(optimizer, x, float(rec["y"]), None if obs is None else floats(obs))
         except ValueError as err:
             raise ReplayError(f"replay failed at step {k}: {err}") from err
     return len(evaluations)
+
+
+def tell(optimizer, x: torch.Tensor, y: float, observables: Sequence[float] | None) -> None:
+    """``optimizer.tell(x, y)``; with ``observables=`` (an ``m`` float64 tensor) when the
+    optimizer fits them (``uses_observables``) and the reading has them (the loop and
+    :func:`replay` tell alike)."""
+    if observables is not None and getattr(optimizer, "uses_observables", False):
+        optimizer.tell(x, y, observables=torch.tensor(list(observables), dtype=DTYPE))
+    else:
+        optimizer.tell(x, y)
 
 
 def evaluation_rows(

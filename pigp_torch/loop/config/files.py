@@ -12,6 +12,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from pigp_torch.loop.config.schema import (
+    AresSimConfig,
     ConfigError,
     EpicsMachineConfig,
     MethodConfig,
@@ -34,7 +35,11 @@ def _allowed_keys(parent: tuple[str, ...], data: Any) -> list[str]:
     model = _SECTIONS.get(parent)
     if parent == ("machine",):
         kind = data.get("machine", {}).get("kind") if isinstance(data, dict) else None
-        model = {"sim": SimMachineConfig, "epics": EpicsMachineConfig}.get(kind)
+        model = {
+            "sim": SimMachineConfig,
+            "ares-sim": AresSimConfig,
+            "epics": EpicsMachineConfig,
+        }.get(kind)
     return list(model.model_fields) if model is not None else []
 
 
@@ -44,7 +49,7 @@ def format_errors(err: ValidationError, data: Any) -> list[str]:
     lines = []
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
-        if len(loc) >= 2 and loc[0] == "machine" and loc[1] in ("sim", "epics"):
+        if len(loc) >= 2 and loc[0] == "machine" and loc[1] in ("sim", "ares-sim", "epics"):
             del loc[1]  # the union tag pydantic adds
         where = ".".join(loc)
         msg = e["msg"].removeprefix("Value error, ")

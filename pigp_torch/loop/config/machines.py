@@ -1,5 +1,6 @@
-r"""The machine sections of a run file: the simulated ring (:class:`SimMachineConfig`) and a
-machine over EPICS Channel Access (:class:`EpicsMachineConfig`), chosen by ``kind``
+r"""The machine sections of a run file: the simulated ring (:class:`SimMachineConfig`), the
+simulated ARES-EA linac (:class:`AresSimConfig`) and a machine over EPICS Channel Access
+(:class:`EpicsMachineConfig`), chosen by ``kind``
 (:data:`MachineConfig`); the strict field types every section uses (:data:`Number`,
 :data:`Integer`, :data:`Flag`). The run as a whole: :mod:`pigp_torch.loop.config.schema`.
 """
@@ -147,7 +148,10 @@ class EpicsMachineConfig(_Section):
     a reading may wait for the objective PV's timestamp to advance. ``protocol``: ``ca``
     (Channel Access, :class:`~pigp_torch.machine.epics.EpicsMachine`, default) or ``pva``
     (pvAccess, :class:`~pigp_torch.machine.pva.PvaMachine`, the ``pva`` extra; the client is
-    configured from ``EPICS_PVA_*`` in the environment).
+    configured from ``EPICS_PVA_*`` in the environment). ``observable_pvs`` (``{name: PV}``,
+    default none): what each reading also measures (e.g. a screen's beam numbers), read after
+    the objective, logged with every evaluation and told to the methods that fit them;
+    ``observable_units`` (``{name: unit}``) their units.
     """
 
     kind: Literal["epics"]
@@ -163,15 +167,70 @@ class EpicsMachineConfig(_Section):
     average_interval: Number = Field(0.0, ge=0.0)
     timeout: Number = Field(2.0, gt=0.0)
     stale_timeout: Number = Field(10.0, gt=0.0)
+    observable_pvs: dict[str, str] | None = None
+    observable_units: dict[str, str] | None = None
 
     @model_validator(mode="after")
     def _one_tolerance(self) -> EpicsMachineConfig:
         if self.tolerance is not None and self.tolerance_fraction is not None:
             raise ValueError("give tolerance (knob units) or tolerance_fraction, not both")
+        pvs, units = self.observable_pvs, self.observable_units
+        if pvs is not None:
+            empty = [k for k, v in pvs.items() if not k.strip() or not v.strip()]
+            if empty or not pvs:
+                raise ValueError(f"machine.observable_pvs: give {{name: PV}}, got {pvs}")
+        if units is not None and set(units) != set(pvs or {}):
+            raise ValueError(
+                f"machine.observable_units: name the unit of every observable of "
+                f"observable_pvs {sorted(pvs or {})}, got {sorted(units)}"
+            )
         return self
 
 
-MachineConfig = Annotated[SimMachineConfig | EpicsMachineConfig, Field(discriminator="kind")]
+class AresSimConfig(_Section):
+    r"""The simulated ARES-EA linac segment (DESY): one published trial tracked through Cheetah
+    behind :class:`~pigp_torch.machine.ares.AresMachine` (five magnets, one screen).
+
+    The run's knobs must be the five ARES knobs in the segment's order (``AREAMQZM1``,
+    ``AREAMQZM2``, ``AREAMCVM1``, ``AREAMQZM3``, ``AREAMCHM1``: k1 in 1/m², angles in rad) with
+    bounds inside the magnets' ranges; each reading measures the four beam numbers on the screen
+    (:math:`\mu_x, \sigma_x, \mu_y, \sigma_y` in m, the run's *observables*) and returns the
+    objective the method reads (``ares-physics``: the mean absolute error to the trial's target in
+    m, minimized; ``published-nm``: that error with a 100× weight off the screen, minimized;
+    any other method: the published BO's reward, maximized). These checks need the simulation
+    and the method registry and are made by :func:`pigp_torch.loop.run.validate_config`.
+
+    Attributes:
+        trial: the trial's key in the trials file (required; the incoming beam, misalignments
+            and target of the simulated machine).
+        trials: a trials file in the published YAML format (relative paths from the run file's
+            folder); default ``None``: the shipped trials 0–149.
+        noise: screen noise, the standard deviation of each of the four beam numbers (m,
+            default 0: noise-free as published).
+        seed: seed of the noise stream.
+        model_error: the wrong-model case of the simulated machine (default ``"none"``: the
+            trial as published; :data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`).
+        x_init: knob values the machine starts at, by knob name (unlisted knobs: the published
+            start 10, −10, 0, 10, 0).
+    """
+
+    kind: Literal["ares-sim"]
+    trial: Integer
+    trials: Path | None = None
+    noise: Number = Field(0.0, ge=0.0)
+    seed: Integer = 0
+    model_error: str = "none"
+    x_init: dict[str, Number] | None = None
+
+    @field_validator("trials")
+    @classmethod
+    def _resolve_trials(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        return _resolve(path, info)
+
+
+MachineConfig = Annotated[
+    SimMachineConfig | AresSimConfig | EpicsMachineConfig, Field(discriminator="kind")
+]
 
 
 def _resolve(path: Path | None, info: ValidationInfo) -> Path | None:

@@ -3,7 +3,8 @@ r"""Run files of ``pigp optimize``: the schema (pydantic models) of a run config
 A run file (YAML or JSON) names everything a run on a machine needs; it is validated as a whole
 (pydantic v2, unknown keys refused) before anything is connected or moved::
 
-    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access
+    machine:                      # sim: the simulated SPEAR3 ring; epics: Channel Access;
+                                  # ares-sim: the simulated ARES-EA linac (a published trial)
       kind: sim
       error_seed: 1
       noise: 0.04                 # mA/min
@@ -39,7 +40,8 @@ number belongs (bounds, limits, timings, seeds, the budget) is refused, not conv
 field takes no ``5.0``; ``maximize`` takes ``true`` or ``false`` only.
 
 ``method.name`` is one of the methods that run files accept (``pigp``, ``pigp-fast``,
-``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``; :mod:`pigp_torch.methods` describes them)
+``pigp-physics``, ``ml2``, ``nelder-mead``, ``rcds``, and on ``kind: ares-sim`` also
+``ares-physics``, ``published-bo``, ``published-nm``; :mod:`pigp_torch.methods` describes them)
 and ``method.options`` are its builder's options. This module checks the file's structure only;
 the method, its options and the prior file are checked against the method registry by
 :func:`pigp_torch.loop.run.validate_config` (which ``pigp optimize`` calls).
@@ -66,6 +68,7 @@ from pydantic import (
 
 from pigp_torch._utils import DTYPE, max_step_tensor
 from pigp_torch.loop.config.machines import (
+    AresSimConfig,
     EpicsMachineConfig,
     Flag,
     Integer,
@@ -106,7 +109,8 @@ class RunConfig(_Section):
     r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
 
     Attributes:
-        machine: :class:`SimMachineConfig` or :class:`EpicsMachineConfig` (by ``kind``).
+        machine: :class:`SimMachineConfig`, :class:`AresSimConfig` or
+            :class:`EpicsMachineConfig` (by ``kind``).
         knobs: ``{name: (lower, upper)}`` in knob order.
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
@@ -223,9 +227,9 @@ class RunConfig(_Section):
                 "half-range); write max_step: unlimited to run without a step limit on purpose"
             )
         m = self.machine
-        if isinstance(m, SimMachineConfig):
-            if isinstance(m.knob_calibration, dict):
-                _same_knobs("machine.knob_calibration", m.knob_calibration, names)
+        if isinstance(m, SimMachineConfig) and isinstance(m.knob_calibration, dict):
+            _same_knobs("machine.knob_calibration", m.knob_calibration, names)
+        if isinstance(m, (SimMachineConfig, AresSimConfig)):
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
             for name, value in (m.x_init or {}).items():
@@ -282,14 +286,16 @@ class RunConfig(_Section):
         return [f"max_step above 10 % of the knob's range: {', '.join(big)}"]
 
     def pv_names(self) -> list[str]:
-        """Every PV the run uses (setpoints, readbacks, objective); empty for the simulator."""
+        """Every PV the run uses (setpoints, readbacks, objective, observables); empty for the
+        simulators."""
         m = self.machine
         if not isinstance(m, EpicsMachineConfig):
             return []
         names = self.knob_names
         sp = m.setpoint_pvs or {n: f"{n}{m.setpoint_suffix}" for n in names}
         rb = m.readback_pvs or {n: f"{n}{m.readback_suffix}" for n in names}
-        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv)]
+        obs = list((m.observable_pvs or {}).values())
+        return [*(sp[n] for n in names), *(rb[n] for n in names), str(self.objective.pv), *obs]
 
     def safety_lines(self) -> list[str]:
         """The safety limits of the run, one line each (printed when a run is resumed from the

@@ -13,12 +13,14 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.data.runlog import file_sha256
 from pigp_torch.loop.config import (
+    AresSimConfig,
     ConfigError,
     EpicsMachineConfig,
     RunConfig,
     SimMachineConfig,
     config_digest,
 )
+from pigp_torch.loop.run.ares import build_ares_machine
 from pigp_torch.methods import METHODS, RunContext
 
 
@@ -37,22 +39,29 @@ class _BoundedSim:
         return f"{self.sim!r} within the run's bounds"
 
 
-def build_optimizer(config: RunConfig):
+def build_optimizer(config: RunConfig, machine=None):
     r"""The configured optimizer (nothing is connected; bad option values raise here).
 
     The registry's builder of ``config.method.name`` with the run's options, bounds, seed and
     direction; no noise level (each optimizer keeps its own default, or ``noise`` from the
-    options) and no archive (a live machine has none).
+    options) and no archive (a live machine has none). On ``kind: ares-sim`` the builder is
+    given the simulated machine (``machine``, or one built from ``config``: a simulation, nothing
+    to connect), whose target the ARES methods read, and the screen noise (m; ``None`` when 0).
 
     Raises:
         ConfigError: the builder refused an option value.
     """
     name = config.method.name
     spec = METHODS[name].with_options(**config.method.options)
+    noise = None
+    if isinstance(config.machine, AresSimConfig):
+        machine = build_ares_machine(config) if machine is None else machine
+        noise = config.machine.noise if config.machine.noise > 0 else None
     ctx = RunContext(
+        machine=machine,
         prior=config.get_prior(),
         seed=config.method.seed,
-        noise=None,
+        noise=noise,
         archive_size=0,
         maximize=config.objective.maximize,
         knob_bounds=config.bounds(),
@@ -99,6 +108,8 @@ def _ring(config: RunConfig, loss_rate_map):
 def build_machine(config: RunConfig):
     r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
     names, bounds, m = config.knob_names, config.bounds(), config.machine
+    if isinstance(m, AresSimConfig):
+        return build_ares_machine(config)
     tolerance = m.tolerance if isinstance(m, EpicsMachineConfig) else None
     if isinstance(m, EpicsMachineConfig) and m.tolerance_fraction is not None:
         tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
@@ -149,6 +160,8 @@ def build_machine(config: RunConfig):
         stale_timeout=m.stale_timeout,
         max_step=config.machine_max_step(),
         read_retries=0,  # the loop retries (config.read_retries), for every machine alike
+        observable_pvs=m.observable_pvs,
+        observable_units=m.observable_units,
     )
 
 
@@ -163,6 +176,18 @@ def prior_record(config: RunConfig) -> dict | None:
         "knob_names": list(prior.knob_names),
         "metadata": prior.provenance,
     }
+
+
+def machine_header(machine) -> dict:
+    """Run-log header entries a machine describes itself with: ``knob_units`` (one per knob),
+    ``observable_names`` and ``observable_units`` (what each reading also measures); only those
+    the machine has."""
+    out = {}
+    for key in ("knob_units", "observable_names", "observable_units"):
+        value = getattr(machine, key, None)
+        if value is not None:
+            out[key] = [str(v) for v in value]
+    return out
 
 
 @dataclass
@@ -187,9 +212,11 @@ class RunSetup:
 
     def header(self) -> dict:
         """Header entries of the run log: configuration (and its :func:`config_digest`),
-        prior provenance, knobs, bounds."""
+        prior provenance, knobs, bounds; a machine's own knob units (``knob_units``) and the
+        names and units of its observables (``observable_names``, ``observable_units``) where
+        it has them."""
         dump = self.config.model_dump(mode="json")
-        return {
+        header = {
             "knob_names": self.config.knob_names,
             "method": self.method,
             "bounds": self.config.bounds().tolist(),
@@ -198,6 +225,7 @@ class RunSetup:
             "config_sha256": config_digest(dump),
             "prior": self.prior_info,
         }
+        return header | machine_header(self.machine)
 
     def run(self, *, log=None, resume=None, progress: bool = False, callback=None):
         r"""Run the loop with the configured safety options (ramped moves, read retries, floor,
@@ -253,9 +281,14 @@ class RunSetup:
 
 def build_run(config: RunConfig) -> RunSetup:
     r"""Build a run from a validated configuration: the prior's provenance, then the optimizer
-    (bad option values raise :class:`ConfigError` here), then — last — the machine.
+    (bad option values raise :class:`ConfigError` here), then — last — the machine. On
+    ``kind: ares-sim`` the simulated machine comes first (a simulation: nothing is connected or
+    moved), as the ARES methods are built from its target.
     """
     info = prior_record(config)
+    if isinstance(config.machine, AresSimConfig):
+        machine = build_machine(config)
+        return RunSetup(config, build_optimizer(config, machine), machine, info)
     optimizer = build_optimizer(config)
     machine = build_machine(config)
     return RunSetup(config=config, optimizer=optimizer, machine=machine, prior_info=info)

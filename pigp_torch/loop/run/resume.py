@@ -78,8 +78,14 @@ def advance_simulated_noise(machine, n_reads: int) -> None:
     A :class:`~pigp_torch.machine.SimulatedMachine` draws one normal variate per reading from its
     seeded generator; taking ``n_reads`` readings (through the public :meth:`read`, the knobs
     unmoved) moves the stream on exactly as many draws, so a resumed simulated run sees the noise
-    an uninterrupted one would have. Other machines are left alone.
+    an uninterrupted one would have. The simulated ARES-EA screen
+    (:class:`~pigp_torch.machine.ares.AresMachine`) draws four per reading and is moved on the
+    same way (:meth:`~pigp_torch.machine.ares.AresMachine.read_observables`). Other machines are
+    left alone.
     """
-    if isinstance(machine, SimulatedMachine) and machine.noise > 0:
+    from pigp_torch.machine.ares import AresMachine
+
+    if isinstance(machine, (SimulatedMachine, AresMachine)) and machine.noise > 0:
+        take = machine.read_observables if isinstance(machine, AresMachine) else machine.read
         for _ in range(int(n_reads)):
-            machine.read()
+            take()
