@@ -113,6 +113,49 @@ def fit_unknowns(
     return u, cost
 
 
+def fit_with_restarts(
+    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    X: torch.Tensor,
+    O: torch.Tensor,
+    center: torch.Tensor,
+    half_width: torch.Tensor,
+    *,
+    u0: torch.Tensor,
+    max_iter: int,
+    restarts: int,
+    restart_above: float,
+    seed: int,
+    **options,
+) -> tuple[torch.Tensor, float, bool]:
+    r""":func:`fit_unknowns` warm-started at ``u0``; when its cost per observable number exceeds
+    ``restart_above`` (squared noise units: the model misses the readings by more than
+    :math:`\sqrt{\text{restart\_above}}` noise sd on average), Levenberg–Marquardt may be stuck
+    in a poor local minimum of the warm start, and the fit is repeated from the prior mean and
+    from ``restarts - 1`` Sobol draws (seed ``seed``) of the unknowns' ranges
+    (:math:`u \in [-1, 1]^P`), each with ``3 max_iter`` iterations; the lowest cost is kept.
+
+    ``options``: the other keyword arguments of :func:`fit_unknowns`. Returns ``(u, cost,
+    restarted)``.
+    """
+
+    def fit(start: torch.Tensor, iters: int) -> tuple[torch.Tensor, float]:
+        return fit_unknowns(model, X, O, center, half_width, u0=start, max_iter=iters, **options)
+
+    u, cost = fit(u0, max_iter)
+    if restarts == 0 or cost <= restart_above * O.numel():
+        return u, cost, False
+    P = center.numel()
+    starts = [torch.zeros(P, dtype=DTYPE)]
+    if restarts > 1:
+        sobol = torch.quasirandom.SobolEngine(P, scramble=True, seed=int(seed))
+        starts += list(2 * sobol.draw(restarts - 1, dtype=DTYPE) - 1)
+    for start in starts:
+        u_k, cost_k = fit(start, 3 * max_iter)
+        if cost_k < cost:
+            u, cost = u_k, cost_k
+    return u, cost, True
+
+
 def least_squares_in_box(
     residual: Callable[[torch.Tensor], torch.Tensor],
     box: torch.Tensor,
@@ -222,3 +265,85 @@ def minimize_in_box(
     with torch.no_grad():
         v = goal(X)
     return X, torch.where(torch.isfinite(v), v, torch.full_like(v, torch.inf))
+
+
+def search_in_box(
+    goal: Callable[[torch.Tensor], torch.Tensor],
+    residual: Callable[[torch.Tensor], torch.Tensor] | None,
+    box: torch.Tensor,
+    starts: torch.Tensor,
+    *,
+    scale: float,
+    ls_iter: int,
+    n_polish: int,
+    polish_tol: float,
+    maxiter: int,
+    ftol: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""The ask's search from ``k x d`` unit-cube ``starts`` in ``box``: ``(X, values)``, the
+    end points (settings) and their goals.
+
+    With ``residual`` (``N x d -> N x r``, zero at the goal's optimum): least squares first
+    (:func:`least_squares_in_box`; the goal is small where the residuals are, and Gauss–Newton
+    converges in a few iterations where a quasi-Newton search on a sum of absolute values crawls
+    along its kinks), then the ``n_polish`` best end points polished by L-BFGS-B on the goal
+    (:func:`minimize_in_box`) unless the best goal is already at most ``polish_tol`` ``scale``
+    units (a target it reached needs no more); the least-squares end points compete as they are.
+    Without ``residual``: L-BFGS-B from every start.
+    """
+    lo, width = box[0], box[1] - box[0]
+    ls_starts = None
+    if residual is not None:
+        ends = least_squares_in_box(residual, box, starts, scale=scale, max_iter=ls_iter)
+        with torch.no_grad():
+            ls_values = goal(lo + width * ends)
+        ls_starts = ends[torch.argsort(ls_values)]
+        reached = bool(ls_values.min() <= polish_tol * scale)
+        starts = ls_starts[: 0 if reached else n_polish]
+    X, v = lo + width * starts[:0], torch.zeros(0, dtype=DTYPE)
+    if starts.shape[0]:
+        X, v = minimize_in_box(goal, box, starts, scale=scale, maxiter=maxiter, ftol=ftol)
+    if ls_starts is not None:
+        X_ls = lo + width * ls_starts
+        with torch.no_grad():
+            v_ls = goal(X_ls)
+        X, v = torch.cat([X, X_ls]), torch.cat([v.to(v_ls), v_ls])
+    return X, v
+
+
+class MergedReadings:
+    r"""Readings merged by setting: each distinct setting once, with the sum and count of the
+    observables read there (the fit's rows are their means, weighted by the counts: the same
+    least squares as the unmerged readings, fewer model rows)."""
+
+    def __init__(self) -> None:
+        self.x: list[torch.Tensor] = []
+        self.sums: list[torch.Tensor] = []
+        self.counts: list[int] = []
+        self.group: list[int] = []  # the distinct setting of each reading, in order
+
+    def add(self, x: torch.Tensor, o: torch.Tensor) -> None:
+        """One reading: observables ``o`` (``m``) at setting ``x`` (``d``)."""
+        for k, xu in enumerate(self.x):
+            if torch.equal(xu, x):
+                self.sums[k] = self.sums[k] + o
+                self.counts[k] += 1
+                self.group.append(k)
+                return
+        self.x.append(x)
+        self.sums.append(o)
+        self.counts.append(1)
+        self.group.append(len(self.x) - 1)
+
+    def arrays(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(X, O, n)``: ``K x d`` distinct settings, ``K x m`` mean observables, ``K`` counts."""
+        n = torch.tensor(self.counts, dtype=DTYPE)
+        return torch.stack(self.x), torch.stack(self.sums) / n.unsqueeze(-1), n
+
+    def scatter(self, O_all: list[torch.Tensor], sd: float) -> float:
+        """Sum over the readings ``O_all`` (every reading added, in order) of their squared
+        deviations from their setting's mean in units of ``sd`` (the constant the merged fit
+        leaves out of the cost)."""
+        _, means, _ = self.arrays()
+        dev = torch.stack(O_all) - means[torch.tensor(self.group)]
+        return float((dev / sd).square().sum())

@@ -61,9 +61,10 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers._least_squares import (
+    MergedReadings,
     fit_unknowns,
-    least_squares_in_box,
-    minimize_in_box,
+    fit_with_restarts,
+    search_in_box,
 )
 from pigp_torch.optimizers.base import AskTellOptimizer
 
@@ -201,10 +202,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         self._fit_theta: torch.Tensor | None = None
         self._best_cache: tuple | None = None
         self._search_trust = 0.0
-        self._unique_x: list[torch.Tensor] = []
-        self._unique_sum: list[torch.Tensor] = []
-        self._unique_n: list[int] = []
-        self._group: list[int] = []
+        self._merged = MergedReadings()
         self.seed = int(seed)
         self.O: list[torch.Tensor] = []
         self.u = torch.zeros_like(self.center)
@@ -260,71 +258,32 @@ class FittedModelOptimizer(AskTellOptimizer):
             )
         # Readings at a setting read before are merged (their mean, counted n times): the same
         # least squares with fewer model rows (the ask repeats its optimum while the fit stands).
-        x_new, o_new = self.X[-1], self.O[-1]
-        for k, xu in enumerate(self._unique_x):
-            if torch.equal(xu, x_new):
-                self._unique_sum[k] = self._unique_sum[k] + o_new
-                self._unique_n[k] += 1
-                self._group.append(k)
-                break
-        else:
-            self._unique_x.append(x_new)
-            self._unique_sum.append(o_new)
-            self._unique_n.append(1)
-            self._group.append(len(self._unique_x) - 1)
+        self._merged.add(self.X[-1], self.O[-1])
         self.u, merged_cost = self._fit()
-        self.fit_cost = merged_cost + self._scatter()
+        self.fit_cost = merged_cost + self._merged.scatter(self.O, self.obs_sd)
         self._fit_theta = self.theta.detach().clone()
 
     def _fit(self) -> tuple[torch.Tensor, float]:
-        r"""The fit of the unknowns to the merged readings, warm-started at the previous fit.
-
-        When its cost per observable number exceeds ``restart_above`` (squared noise units: the
-        model misses the readings by more than 3 noise sd on average), Levenberg–Marquardt may be
-        stuck in a poor local minimum of the warm start: the fit is repeated from the prior mean
-        and from ``fit_restarts - 1`` Sobol draws of the unknowns' ranges (:math:`u \in [-1,
-        1]^P`), each with ``3 fit_iter`` iterations, and the lowest cost is kept.
-        """
-        n = torch.tensor(self._unique_n, dtype=DTYPE)
-        X, O = torch.stack(self._unique_x), torch.stack(self._unique_sum) / n.unsqueeze(-1)
-
-        def fit(u0: torch.Tensor, max_iter: int) -> tuple[torch.Tensor, float]:
-            return fit_unknowns(
-                self.model,
-                X,
-                O,
-                self.center,
-                self.half_width,
-                obs_sd=self.obs_sd,
-                prior_sd=self.prior_sd,
-                u0=u0,
-                max_iter=max_iter,
-                weights=n,
-                cost_tol=self.fit_cost_tol,
-            )
-
-        u, cost = fit(self.u, self.fit_iter)
-        if self.fit_restarts == 0 or cost <= self.restart_above * O.numel():
-            return u, cost
-        self.n_restarted += 1
-        P = self.center.numel()
-        starts = [torch.zeros(P, dtype=DTYPE)]
-        if self.fit_restarts > 1:
-            sobol = torch.quasirandom.SobolEngine(P, scramble=True, seed=self.seed + self.n_told)
-            starts += list(2 * sobol.draw(self.fit_restarts - 1, dtype=DTYPE) - 1)
-        for u0 in starts:
-            u_k, cost_k = fit(u0, 3 * self.fit_iter)
-            if cost_k < cost:
-                u, cost = u_k, cost_k
+        """The fit of the unknowns to the merged readings (:func:`fit_with_restarts`)."""
+        X, O, n = self._merged.arrays()
+        u, cost, restarted = fit_with_restarts(
+            self.model,
+            X,
+            O,
+            self.center,
+            self.half_width,
+            obs_sd=self.obs_sd,
+            prior_sd=self.prior_sd,
+            u0=self.u,
+            max_iter=self.fit_iter,
+            weights=n,
+            cost_tol=self.fit_cost_tol,
+            restarts=self.fit_restarts,
+            restart_above=self.restart_above,
+            seed=self.seed + self.n_told,
+        )
+        self.n_restarted += int(restarted)
         return u, cost
-
-    def _scatter(self) -> float:
-        """Sum over the readings of their squared deviations from their setting's mean, in noise
-        units (the constant that the merged fit leaves out of the cost)."""
-        n = torch.tensor(self._unique_n, dtype=DTYPE).unsqueeze(-1)
-        means = torch.stack(self._unique_sum) / n
-        dev = torch.stack(self.O) - means[torch.tensor(self._group)]
-        return float((dev / self.obs_sd).square().sum())
 
     def best(self) -> tuple[torch.Tensor, float]:
         """The best measured ``(x, y)``: by the readings ``y`` (``best_from="readings"``), or the
@@ -401,34 +360,24 @@ class FittedModelOptimizer(AskTellOptimizer):
         def goal(X: torch.Tensor) -> torch.Tensor:
             return self.goal(self.model(X, theta))
 
+        residual = None
         if self.residual is not None:
-            # Least squares first: the goal is small where the residuals are, and Gauss-Newton
-            # converges in a few iterations where a quasi-Newton search on a sum of absolute
-            # values crawls along its kinks.
-            starts = least_squares_in_box(
-                lambda X: self.residual(self.model(X, theta)),
-                box,
-                starts,
-                scale=self.obs_sd,
-                max_iter=self.ls_iter,
-            )
-            with torch.no_grad():
-                ls_values = goal(box[0] + width * starts)
-            ls_starts = starts[torch.argsort(ls_values)]
-            # Polish (L-BFGS-B on the goal itself) only where least squares left the goal
-            # above polish_tol noise sd: a target it reached needs no more.
-            reached = bool(ls_values.min() <= self.polish_tol * self.obs_sd)
-            starts = ls_starts[: 0 if reached else self.n_polish]
-        X, v = box[0] + width * starts[:0], values[:0]
-        if starts.shape[0]:
-            X, v = minimize_in_box(
-                goal, box, starts, scale=self.obs_sd, maxiter=self.maxiter, ftol=self.search_ftol
-            )
-        if self.residual is not None:  # the least-squares end points compete as they are
-            X_ls = box[0] + width * ls_starts
-            with torch.no_grad():
-                v_ls = goal(X_ls)
-            X, v = torch.cat([X, X_ls]), torch.cat([v, v_ls])
+
+            def residual(X: torch.Tensor) -> torch.Tensor:
+                return self.residual(self.model(X, theta))
+
+        X, v = search_in_box(
+            goal,
+            residual,
+            box,
+            starts,
+            scale=self.obs_sd,
+            ls_iter=self.ls_iter,
+            n_polish=self.n_polish,
+            polish_tol=self.polish_tol,
+            maxiter=self.maxiter,
+            ftol=self.search_ftol,
+        )
         v = torch.where(torch.isfinite(v), v, torch.full_like(v, torch.inf))
         i = int(v.argmin())
         x = X[i] if bool(v[i] <= values[order[0]]) else box[0] + width * Z[order[0]]

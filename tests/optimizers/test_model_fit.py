@@ -134,7 +134,7 @@ def test_optimizer_repeats_its_optimum_without_searching_once_the_fit_stands():
         opt.tell(x, float((o - target).abs().mean()), observables=o)
         x = opt.ask()
     assert opt.n_reused >= 6 and opt.n_searches <= 5
-    assert len(opt._unique_x) <= 6
+    assert len(opt._merged.x) <= 6
     o = _linear_model(x[None], truth)[0]
     assert float((o - target).abs().max()) < 1e-5
     assert opt.trust == 1.0  # the readings agreed with the model: the region grew
