@@ -22,6 +22,8 @@ Outputs:
   with its interquartile band, one line per method (log scale, 40 and 20 µm dotted).
 
 ``--common`` keeps, per condition, only the trials every method of that condition ran.
+``DIR::M1,M2`` takes only methods ``M1``, ``M2`` from that folder (e.g. the published recipes of
+a folder whose ``ares-physics`` runs an older version of the method).
 """
 
 from __future__ import annotations
@@ -73,11 +75,18 @@ def load_runs(dirs, common: bool = False) -> pd.DataFrame:
     ``noise_m`` (module docstring)."""
     frames = []
     for d in dirs:
+        d, _, only = str(d).partition("::")
         folder = Path(d)
         path = folder / "steps.csv"
         if not path.is_file():
             raise FileNotFoundError(f"no steps.csv in {folder}")
         table = pd.read_csv(path, keep_default_na=False, na_values=[""])
+        if only:
+            methods = only.split(",")
+            missing = sorted(set(methods) - set(table["method"]))
+            if missing:
+                raise ValueError(f"{folder}: no runs of {missing}")
+            table = table[table["method"].isin(methods)]
         case, noise, label = condition_of(folder, table)
         frames.append(table.assign(condition=label, case=case, noise_m=noise, model_error=case))
     runs = pd.concat(frames, ignore_index=True)
@@ -197,7 +206,9 @@ def plot_conditions(runs: pd.DataFrame, path) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("dirs", nargs="+", help="output folders of pigp bench ares")
+    p.add_argument(
+        "dirs", nargs="+", help="output folders of pigp bench ares (DIR::M1,M2: only those methods)"
+    )
     p.add_argument("--markdown", default=None, help="write the table here (else print it)")
     p.add_argument("--scores-csv", default=None, help="write the per-trial scores here")
     p.add_argument("--figure", default=None, help="write the figure here (PNG)")

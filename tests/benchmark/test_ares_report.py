@@ -118,3 +118,15 @@ def test_common_and_duplicates(script, folders):
     assert sorted(runs["trial"].unique()) == [10, 11, 12]
     with pytest.raises(ValueError, match="ran twice under 'noise-free'"):
         script.load_runs([folders / "free_nm", folders / "free_nm"])
+
+
+def test_methods_of_a_folder(script, folders):
+    """DIR::M keeps only method M of that folder (the noisy folder has both recipes); a method
+    the folder lacks is an error."""
+    both = script.load_runs([folders / "noisy"])
+    assert set(both["method"]) == {"published-bo", "published-nm"}
+    nm = script.load_runs([f"{folders / 'noisy'}::published-nm"])
+    assert set(nm["method"]) == {"published-nm"}
+    assert len(nm) == (both["method"] == "published-nm").sum()
+    with pytest.raises(ValueError, match="no runs of \\['ares-physics'\\]"):
+        script.load_runs([f"{folders / 'noisy'}::ares-physics"])
