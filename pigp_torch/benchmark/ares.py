@@ -20,8 +20,11 @@ Each score is summarized per method by the median and the interquartile range ov
 A wrong-model case (``model_error``, :data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`)
 changes the simulated machine only (its incoming beam, misalignments or quadrupole calibration;
 the methods' models keep the published ranges); every row names it in the ``model_error`` column.
-Methods that need a ring's physics prior (``needs_prior``) or are built for another task cannot
-run here and are refused before any run starts.
+The GP methods with the paper's physics prior (``pigp``, ``pigp-fast``) get, per trial, the prior
+of the ARES model for the trial's target (:func:`~pigp_torch.benchmark.ares_prior.ares_prior`;
+the unknowns at the centre of their ranges, never the trial's) and read ``"neg-mae"``. Other
+methods that need a physics prior, or methods built for another task, cannot run here and are
+refused before any run starts.
 """
 
 from __future__ import annotations
@@ -34,6 +37,13 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pigp_torch.benchmark.ares_prior import (
+    ARES_PRIOR_ENSEMBLE,
+    ARES_PRIOR_METHODS,
+    ARES_PRIOR_OBJECTIVE,
+    ares_prior,
+    uses_ares_prior,
+)
 from pigp_torch.machine.ares import AresMachine
 from pigp_torch.methods import METHODS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.methods.ares import ares_objective_for
@@ -63,17 +73,19 @@ def default_ares_methods() -> list[str]:
 
 def check_ares_methods(methods: Sequence[str | MethodSpec]) -> list[MethodSpec]:
     """The specs of ``methods`` if each can run on the ARES machine: built for it or for any
-    machine, and needing no ring's physics prior (the ARES machine has none).
+    machine, and needing either no physics prior or the ARES model's
+    (:data:`~pigp_torch.benchmark.ares_prior.ARES_PRIOR_METHODS`).
 
     Raises:
         ValueError: an unknown method, or one that cannot run here (one line).
     """
     specs = resolve_methods(list(methods))
     for spec in specs:
-        if spec.needs_prior:
+        if spec.needs_prior and not uses_ares_prior(spec):
             raise ValueError(
                 f"method {spec.name!r} needs a ring's physics prior, which the ARES task has "
-                "not; on ARES use ares-physics, ml2, published-bo, published-nm, nelder-mead"
+                f"not; on ARES the prior methods are {', '.join(ARES_PRIOR_METHODS)}; also "
+                "ares-physics, ml2, published-bo, published-nm, nelder-mead"
             )
         if spec.machine not in (None, "ares-ea"):
             raise ValueError(f"method {spec.name!r} is built for {spec.machine!r}, not ares-ea")
@@ -107,7 +119,9 @@ def run_ares_trial(
         noise: screen noise standard deviation (m) on each of the four numbers (default 0).
             The method's ``RunContext.noise`` is this number in m (``None`` when 0): methods that
             fit the four numbers (``ares-physics``) use it as their noise; the GP methods on the
-            scalar objective (``ml2``, ``published-bo``) learn their noise from the readings.
+            scalar objective (``ml2``, ``published-bo``) learn their noise from the readings; the
+            prior methods (``pigp``) take the prior's noise
+            (:func:`~pigp_torch.benchmark.ares_prior.prior_noise`).
         seed: seed of the method, of the screen noise and of torch's global generator during
             the run (restored afterwards), so that a run repeats to the bit.
         segment: a shared :class:`AresSegment` (default: a new one) for ``model_error="none"``.
@@ -124,11 +138,16 @@ def run_ares_trial(
         trial_m, segment = case_machine_parts(trial, model_error)
     else:
         trial_m = trial
-    machine = AresMachine(
-        trial_m, objective=ares_objective_for(spec.name), noise=noise, seed=seed, segment=segment
-    )
+    with_prior = uses_ares_prior(spec)
+    objective = ARES_PRIOR_OBJECTIVE if with_prior else ares_objective_for(spec.name)
+    machine = AresMachine(trial_m, objective=objective, noise=noise, seed=seed, segment=segment)
+    prior = None
+    if with_prior:
+        n_ens = ARES_PRIOR_ENSEMBLE if spec.uses_center_ensemble else 0
+        prior = ares_prior(trial.target, noise, n_ensemble=n_ens)
     ctx = RunContext(
         machine=machine,
+        prior=prior,
         seed=seed,
         noise=float(noise) if noise > 0 else None,
         archive_size=0,

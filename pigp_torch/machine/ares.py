@@ -12,7 +12,10 @@ width and half height of the sensor), else :math:`-1`:
   :math:`r = 10\,s - \ln \sum_i |o_i - t_i|` (the sum in m);
 * ``"distance"`` (minimized; the published Nelder–Mead's beam distance with its 100× off-screen
   weight): :math:`d = \mathrm{MAE}(o, t) \cdot (100 \text{ if } s < 0 \text{ else } 1)`;
-* ``"mae"`` (minimized): :math:`\mathrm{MAE}(o, t) = \tfrac14 \sum_i |o_i - t_i|` in m, the score.
+* ``"mae"`` (minimized): :math:`\mathrm{MAE}(o, t) = \tfrac14 \sum_i |o_i - t_i|` in m, the score;
+* ``"neg-mae-um"`` (maximized): :math:`-10^6\,\mathrm{MAE}(o, t)`, minus the MAE in µm, for
+  the methods whose physics prior describes a peak of a maximized objective (µm keep a GP's
+  noise variance above GPyTorch's floor of 1e-6 for float64).
 
 Screen noise (``noise``, m, default 0: noise-free as published): each of the four numbers gets
 independent Gaussian noise :math:`\mathcal N(0, \sigma^2)` from the machine's own seeded generator;
@@ -35,7 +38,12 @@ from pigp_torch.simulation.ares import (
 )
 
 #: Objectives of the observables and whether each is maximized.
-ARES_OBJECTIVES: dict[str, bool] = {"reward": True, "distance": False, "mae": False}
+ARES_OBJECTIVES: dict[str, bool] = {
+    "reward": True,
+    "distance": False,
+    "mae": False,
+    "neg-mae-um": True,
+}
 
 
 def ares_objective(
@@ -52,6 +60,8 @@ def ares_objective(
         return mae * torch.where(on_screen, 1.0, 100.0).to(err)
     if objective == "mae":
         return mae
+    if objective == "neg-mae-um":
+        return -1e6 * mae
     raise ValueError(f"unknown ARES objective {objective!r}; known: {sorted(ARES_OBJECTIVES)}")
 
 
@@ -60,7 +70,8 @@ class AresMachine(GuardedMachine):
 
     Args:
         trial: the trial (incoming beam, misalignments, target).
-        objective: ``"reward"`` (default, maximize), ``"distance"`` or ``"mae"`` (minimize).
+        objective: ``"reward"`` (default, maximize), ``"distance"`` or ``"mae"`` (minimize),
+            ``"neg-mae-um"`` (maximize).
         noise: screen noise standard deviation per beam number (m; default 0).
         seed: seed of the noise generator.
         unidirectional: restrict the quadrupoles to Q1 ≥ 0, Q2 ≤ 0, Q3 ≥ 0 (as the published BO).
