@@ -65,11 +65,13 @@ def test_noise_on_ares_physics(trials):
 
 
 def test_methods_needing_a_ring_prior_are_refused(tmp_path, capsys):
-    """pigp (and every method that needs a ring's physics prior) cannot run on ARES: one line,
-    exit 2, before any run."""
+    """pigp-physics (a method that needs a ring's physics prior, whose peak form is the ring's)
+    cannot run on ARES: one line, exit 2, before any run."""
     with pytest.raises(ValueError, match="needs a ring's physics prior"):
-        check_ares_methods(["published-bo", "pigp"])
-    rc = main(["bench", "ares", "--trial-ids", "0", "--methods", "pigp", "-o", str(tmp_path)])
+        check_ares_methods(["published-bo", "pigp-physics"])
+    rc = main(
+        ["bench", "ares", "--trial-ids", "0", "--methods", "pigp-physics", "-o", str(tmp_path)]
+    )
     assert rc == 2
     assert "needs a ring's physics prior" in capsys.readouterr().err
     assert not (tmp_path / "steps.csv").exists()
