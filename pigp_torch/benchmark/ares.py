@@ -84,7 +84,7 @@ def check_ares_methods(methods: Sequence[str | MethodSpec]) -> list[MethodSpec]:
         if spec.needs_prior and not uses_ares_prior(spec):
             raise ValueError(
                 f"method {spec.name!r} needs a ring's physics prior, which the ARES task has "
-                f"not; on ARES the prior methods are {', '.join(ARES_PRIOR_METHODS)}; also "
+                f"not; on ARES use {', '.join(ARES_PRIOR_METHODS)} (prior from the ARES model), "
                 "ares-physics, ml2, published-bo, published-nm, nelder-mead"
             )
         if spec.machine not in (None, "ares-ea"):

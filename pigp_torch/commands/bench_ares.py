@@ -17,6 +17,11 @@ MODEL_ERROR_HELP: dict[str, str] = {
 }
 
 
+#: The methods that run with the ARES model's prior, as ``--help`` names them (torch-free; a
+#: test keeps it equal to :data:`pigp_torch.benchmark.ares_prior.ARES_PRIOR_METHODS`).
+ARES_PRIOR_METHODS_HELP: tuple[str, ...] = ("pigp", "pigp-fast")
+
+
 def _nonnegative_float(text: str) -> float:
     try:
         value = float(text)
@@ -128,7 +133,11 @@ def register(sub, bench) -> None:
         nargs="+",
         default=None,
         help="registered method names (default: the product's ARES method and the published "
-        "recipes published-bo, published-nm)",
+        "recipes published-bo, published-nm); "
+        + ", ".join(ARES_PRIOR_METHODS_HELP)
+        + " run with the paper's physics prior from the ARES model for each trial's target "
+        "(unknowns at the centre of their ranges, never the trial's) and read minus the MAE in "
+        "um; other methods that need a ring's physics prior are refused",
     )
     b.add_argument("--steps", type=int, default=150, help="measurements per run (default 150)")
     b.add_argument(

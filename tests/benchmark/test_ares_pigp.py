@@ -10,6 +10,7 @@ pytest.importorskip("cheetah")
 
 from pigp_torch.benchmark.ares import check_ares_methods
 from pigp_torch.benchmark.ares_prior import (
+    ARES_PRIOR_METHODS,
     ARES_PRIOR_OBJECTIVE,
     PRIOR_NOISE_FLOOR_UM,
     ares_model_um,
@@ -17,6 +18,7 @@ from pigp_torch.benchmark.ares_prior import (
     prior_noise,
 )
 from pigp_torch.cli import main
+from pigp_torch.commands.bench_ares import ARES_PRIOR_METHODS_HELP
 from pigp_torch.machine.ares import AresMachine
 from pigp_torch.simulation.ares import START_SETTING, load_trials
 
@@ -46,6 +48,15 @@ def test_prior_methods_are_accepted_and_read_minus_the_mae_in_um(trials):
     assert prior_noise(0.0) == PRIOR_NOISE_FLOOR_UM
     assert prior_noise(5e-6) == pytest.approx(2.5)
     assert prior_noise(1e-7) == PRIOR_NOISE_FLOOR_UM
+    assert ARES_PRIOR_METHODS_HELP == ARES_PRIOR_METHODS  # what --help names
+
+
+def test_help_names_the_prior_methods(capsys):
+    """`pigp bench ares --help` says which methods run with the ARES model's prior."""
+    with pytest.raises(SystemExit):
+        main(["bench", "ares", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "pigp, pigp-fast run with the paper's physics prior from the ARES model" in text
 
 
 @pytest.mark.slow
