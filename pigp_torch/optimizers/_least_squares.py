@@ -21,24 +21,39 @@ def row_jacobian(
     theta: torch.Tensor,
 ) -> torch.Tensor:
     r"""``N x m x P``: :math:`\partial M(x_n, \theta)_j / \partial \theta` of a model that acts
-    row by row, by one backward pass.
+    row by row.
 
     Each row's observables depend on that row's setting and the unknowns only, so the model is
     evaluated once on the ``m N`` rows of ``X`` repeated ``m`` times, each row with its own copy
-    of ``theta`` (``m N x P``: the model must accept a batch of unknowns aligned with the rows of
-    its settings, as it broadcasts ``theta`` against ``X``); the sum of observable ``j`` over the
-    ``j``-th copy has row ``n``'s gradient in copy ``n`` of ``theta``. Reverse mode, so it also
-    works where forward-mode autograd does not (complex intermediates such as the square root of
-    a quadrupole's strength, when an unknown scales it).
+    of ``theta`` (``m N x P``), and the sum of observable ``j`` over the ``j``-th copy has row
+    ``n``'s gradient in copy ``n`` of ``theta``: one backward pass. Reverse mode, so it also works
+    where forward-mode autograd does not (complex intermediates such as the square root of a
+    quadrupole's strength, when an unknown scales it).
+
+    A model written for one vector of unknowns (``theta[k]`` rather than ``theta[..., k]``)
+    cannot take a batch of them: when the batched call fails or does not reproduce the model at
+    ``theta`` in every copy, the Jacobian is forward-mode autograd's instead.
     """
     N = X.shape[0]
+    theta = theta.detach()
     with torch.no_grad():
-        m = model(X[:1], theta.detach()).shape[-1]
-    T = theta.detach().expand(m * N, -1).clone().requires_grad_(True)
-    with torch.enable_grad():
-        out = model(X.repeat(m, 1), T)
-        picked = out.reshape(m, N, m).diagonal(dim1=0, dim2=2)  # N x m: copy j, observable j
-        (grad,) = torch.autograd.grad(picked.sum(), T)
+        base = model(X, theta)
+    m = base.shape[-1]
+    T = theta.expand(m * N, -1).clone().requires_grad_(True)
+    try:
+        with torch.enable_grad():
+            out = model(X.repeat(m, 1), T)
+        copies = out.detach().reshape(m, N, m)
+        scale = float(base.abs().max()) if base.numel() else 0.0
+        batched = torch.allclose(copies, base.expand(m, N, m), rtol=1e-9, atol=1e-12 * scale)
+    except (RuntimeError, IndexError, ValueError):
+        batched = False
+    if not batched:
+        return torch.autograd.functional.jacobian(
+            lambda t: model(X, t), theta, strategy="forward-mode", vectorize=True
+        ).detach()
+    picked = out.reshape(m, N, m).diagonal(dim1=0, dim2=2)  # N x m: copy j, observable j
+    (grad,) = torch.autograd.grad(picked.sum(), T)
     return grad.reshape(m, N, -1).permute(1, 0, 2)
 
 

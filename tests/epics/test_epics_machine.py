@@ -239,7 +239,9 @@ def test_readbacks_outside_bounds_at_start_refused(ioc, probe, ca_context):
 def test_open_close_cycles_leak_no_file_descriptors(ioc):
     """Each EpicsMachine with a context of its own opens sockets and two selector (epoll)
     descriptors; close() releases all of them: after 5 open/read/close cycles the process holds
-    as many descriptors as before (a long-lived process, e.g. Badger, opens one per run)."""
+    no more descriptors than before (a long-lived process, e.g. Badger, opens one per run; a
+    leak adds at least 3 per cycle). Fewer is no leak: a descriptor that an earlier test's
+    caproto thread closes during the count (seen on a loaded machine, 35 before and 33 after)."""
 
     def n_fds() -> int:
         return len(os.listdir("/proc/self/fd"))
@@ -254,7 +256,7 @@ def test_open_close_cycles_leak_no_file_descriptors(ioc):
     for _ in range(5):
         cycle()
     gc.collect()
-    assert n_fds() == before
+    assert n_fds() <= before
 
 
 def test_the_step_limit_is_measured_from_the_setpoints_not_the_readbacks(ioc, probe):

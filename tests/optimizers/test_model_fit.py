@@ -188,3 +188,25 @@ def test_a_fit_stuck_in_a_local_minimum_restarts_from_the_prior(u0):
     assert stuck.n_restarted == 0 and restarted.n_restarted >= 1
     assert float(restarted.theta) == pytest.approx(1.3, abs=1e-6)
     assert restarted.fit_cost < 0.01
+
+
+def test_row_jacobian_of_a_model_for_one_vector_of_unknowns():
+    """A model written for one vector of unknowns (theta[k]) cannot take a batch of them: the
+    row-wise Jacobian falls back to forward mode and equals torch's Jacobian; a model that
+    broadcasts (theta[..., k]) gets the batched one, equal to it as well."""
+    from pigp_torch.optimizers._least_squares import row_jacobian
+
+    X = torch.rand(5, 2, generator=torch.Generator().manual_seed(1), dtype=D)
+    theta = torch.tensor([1.3, -0.4, 1.2], dtype=D)
+
+    def one_vector(X, th):  # th[0] on a batch of unknowns is a row, not the first unknown
+        return torch.stack([th[0] * X[:, 0] ** 2 + th[1], torch.sin(th[2] * X[:, 1])], -1)
+
+    def batched(X, th):
+        return torch.stack(
+            [th[..., 0] * X[:, 0] ** 2 + th[..., 1], torch.sin(th[..., 2] * X[:, 1])], -1
+        )
+
+    J = torch.autograd.functional.jacobian(lambda t: batched(X, t), theta)
+    for model in (one_vector, batched):
+        torch.testing.assert_close(row_jacobian(model, X, theta), J, rtol=1e-12, atol=1e-14)
