@@ -18,9 +18,10 @@ the project's Nelder–Mead from the best reading so far, an initial simplex of 
 range: a local search from where the model got to; or ``fallback="bo"``: BayesOpt on an ML-II
 GP given every reading). :meth:`best` is then the best reading.
 
-Why Nelder–Mead by default: on tuning trial 0 of ARES-EA with quadrupoles 10 % stronger than
-the model's (a wrong calibration), the fallback to BayesOpt ended worse than the published BO
-recipe on the same machine, the Nelder–Mead fallback clearly better (docs/results.md).
+Why Nelder–Mead by default: a model that stops explaining the readings has usually brought the
+beam close to the target already, where a local search from the best reading keeps that gain;
+a GP fitted to every reading restarts a global search (the comparison on a wrong ARES-EA
+calibration is in docs/results.md).
 """
 
 from __future__ import annotations
