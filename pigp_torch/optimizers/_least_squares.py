@@ -19,6 +19,9 @@ def row_jacobian(
     model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     X: torch.Tensor,
     theta: torch.Tensor,
+    *,
+    batched: bool | None = None,
+    n_obs: int | None = None,
 ) -> torch.Tensor:
     r"""``N x m x P``: :math:`\partial M(x_n, \theta)_j / \partial \theta` of a model that acts
     row by row.
@@ -31,30 +34,50 @@ def row_jacobian(
     quadrupole's strength, when an unknown scales it).
 
     A model written for one vector of unknowns (``theta[k]`` rather than ``theta[..., k]``)
-    cannot take a batch of them: when the batched call fails or does not reproduce the model at
-    ``theta`` in every copy, the Jacobian is forward-mode autograd's instead.
+    cannot take a batch of them: with ``batched=None`` (default) :func:`takes_batched_unknowns`
+    checks, and where it cannot (``batched=False``) the Jacobian is forward-mode autograd's.
+    ``batched=True`` skips the check (a caller that checked once for its model and rows);
+    ``n_obs``: the model's ``m`` when the caller knows it (else one model call finds it).
     """
-    N = X.shape[0]
     theta = theta.detach()
-    with torch.no_grad():
-        base = model(X, theta)
-    m = base.shape[-1]
-    T = theta.expand(m * N, -1).clone().requires_grad_(True)
-    try:
-        with torch.enable_grad():
-            out = model(X.repeat(m, 1), T)
-        copies = out.detach().reshape(m, N, m)
-        scale = float(base.abs().max()) if base.numel() else 0.0
-        batched = torch.allclose(copies, base.expand(m, N, m), rtol=1e-9, atol=1e-12 * scale)
-    except (RuntimeError, IndexError, ValueError):
-        batched = False
+    if batched is None:
+        batched = takes_batched_unknowns(model, X, theta)
     if not batched:
         return torch.autograd.functional.jacobian(
             lambda t: model(X, t), theta, strategy="forward-mode", vectorize=True
         ).detach()
+    N = X.shape[0]
+    if n_obs is None:
+        with torch.no_grad():
+            n_obs = model(X[:1], theta).shape[-1]
+    m = int(n_obs)
+    T = theta.expand(m * N, -1).clone().requires_grad_(True)
+    with torch.enable_grad():
+        out = model(X.repeat(m, 1), T)
     picked = out.reshape(m, N, m).diagonal(dim1=0, dim2=2)  # N x m: copy j, observable j
     (grad,) = torch.autograd.grad(picked.sum(), T)
     return grad.reshape(m, N, -1).permute(1, 0, 2)
+
+
+def takes_batched_unknowns(
+    model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    X: torch.Tensor,
+    theta: torch.Tensor,
+) -> bool:
+    """Whether ``model`` takes an ``m N x P`` batch of unknowns row by row with ``X`` repeated
+    ``m`` times: the batched call must not fail and must reproduce ``model(X, theta)`` in every
+    copy (to 1e-9 relative)."""
+    theta = theta.detach()
+    with torch.no_grad():
+        base = model(X, theta)
+        m, N = base.shape[-1], X.shape[0]
+        try:
+            out = model(X.repeat(m, 1), theta.expand(m * N, -1))
+            copies = out.reshape(m, N, m)
+        except (RuntimeError, IndexError, ValueError):
+            return False
+    scale = float(base.abs().max()) if base.numel() else 0.0
+    return bool(torch.allclose(copies, base.expand(m, N, m), rtol=1e-9, atol=1e-12 * scale))
 
 
 def fit_unknowns(
@@ -103,9 +126,14 @@ def fit_unknowns(
     r = residual(u).detach()
     cost = float(r @ r)
     eye = torch.eye(P, dtype=DTYPE)
+    batched = None
     lam = 1e-3
     for _ in range(int(max_iter)):
-        dpred = row_jacobian(model, X, center + half_width * u) * half_width  # N x m x P
+        theta = center + half_width * u
+        if batched is None:  # checked once per fit: the model and the rows do not change
+            batched = takes_batched_unknowns(model, X, theta)
+        dpred = row_jacobian(model, X, theta, batched=batched, n_obs=O.shape[-1])  # N x m x P
+        dpred = dpred * half_width
         J = torch.cat([-(root_w.unsqueeze(-1) * dpred / obs_sd).reshape(-1, P), eye / prior_sd])
         A = J.T @ J
         g = J.T @ r
