@@ -138,3 +138,21 @@ def test_oracle_prior_of_a_wide_machine_is_its_own_peak(wide, tiny_prior):
     assert prior.f_x0 == pytest.approx(float(wide.loss_rate(mu)), rel=1e-12)
     assert prior.f_x0 >= wide_draw(SEED).f_star * (1 - 1e-9)
     torch.testing.assert_close(prior.peak_shape, B)
+
+
+def test_pigp_compare_runs_the_wide_family(wide, tmp_path, capsys):
+    """``pigp compare --family wide`` runs and scores the wide machines; with --model-maps it
+    is refused at once with the reason."""
+    import pandas as pd
+
+    from pigp_torch.cli import main
+
+    out = tmp_path / "cmp"
+    argv = ["compare", "--methods", "nelder-mead", "--seeds", str(SEED), "--family", "wide"]
+    argv += ["--budget-direct", "3", "--prior-source", "exact", "-o", str(out)]
+    assert main(argv) == 0
+    runs = pd.read_csv(out / "runs.csv")
+    assert len(runs) == 3 and (runs["family"] == "wide").all()
+    assert runs["f_star"].iloc[0] == pytest.approx(wide_draw(SEED).f_star, rel=1e-6)
+    assert main([*argv, "--model-maps"]) == 2
+    assert "draws each machine's own loss-rate map" in capsys.readouterr().err
