@@ -25,8 +25,8 @@ r"""Families of benchmark machines: which SPEAR3 rings the spear3-13 protocol dr
 
   The wide family exists for the SPEAR3 user deck only (any SPEAR3 knob set), and it draws its
   own loss-rate map: ``machine_maps`` must be true (the model's map or scaled maps are a
-  project-family option). Built machines are cached per process (a build costs a tune fit and
-  an optimum search, seconds).
+  project-family option). The re-tuned lattice and the map are cached per process (they cost a
+  tune fit and an optimum search, seconds).
 
 Seeds follow the protocol: report on machines 1-24, tune on 101 and up.
 """
@@ -56,7 +56,7 @@ PEAK_RANGE = (0.9, 1.7)
 #: range of a wide machine's background f_inf (mA/min)
 BACKGROUND_RANGE = (0.05, 0.35)
 
-_WIDE: dict[tuple, RingCoupling] = {}
+_WIDE: dict[tuple, tuple] = {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,32 +118,37 @@ def check_wide_ring(ring: RingSpec, machine_maps=True) -> None:
 def wide_machine(machine_seed: int, ring: RingSpec) -> RingCoupling:
     r"""Wide machine ``machine_seed`` of the SPEAR3 ``ring`` (its knobs and knob limit): the
     re-tuned deck, the seed's errors at the drawn scale, the map that gives the drawn
-    :math:`f^*` and :math:`f_\infty`; cached per process. ``machine.family_draw`` is its
-    :class:`WideDraw`.
+    :math:`f^*` and :math:`f_\infty`. ``machine.family_draw`` is its :class:`WideDraw`.
+
+    The re-tuned lattice and the map are computed once per process; every call returns a new
+    machine object on them (like ``ring.build``: no state, such as a cached optimum search,
+    is shared between runs), whose fast model is cached with the lattice.
 
     Raises:
         ValueError: ``ring`` is not the SPEAR3 user deck.
     """
     from pigp_torch.benchmark.mismatch import retuned_lattice
     from pigp_torch.simulation.calibration import peak_density
-    from pigp_torch.simulation.spear3 import knob_calibration_for, knob_names_for
 
     check_wide_ring(ring)
     key = (int(machine_seed), ring)
     if key not in _WIDE:
         draw = wide_draw(machine_seed)
         lattice = retuned_lattice(draw.dnu_x, draw.dnu_y, ring.optics)
-        names = knob_names_for(ring.knobs, ring.optics)
+        _, p_star = peak_density(_build(lattice, ring, draw, (0.0, 1.0)))
+        _WIDE[key] = (lattice, draw, (draw.f_inf, (draw.f_star - draw.f_inf) / p_star))
+    lattice, draw, loss_rate_map = _WIDE[key]
+    return _build(lattice, ring, draw, loss_rate_map)
 
-        def build(loss_rate_map):
-            return RingCoupling(lattice, names, knob_calibration_for(names, ring.optics),
-                                knob_limit=float(ring.knob_limit), knob_units="A",
-                                error_seed=draw.machine_seed, error_scale=draw.error_scale,
-                                loss_rate_map=loss_rate_map,
-                                name=f"SPEAR3 {ring.optics} wide")  # fmt: skip
 
-        _, p_star = peak_density(build((0.0, 1.0)))  # the lattice and errors are cached
-        sim = build((draw.f_inf, (draw.f_star - draw.f_inf) / p_star))
-        sim.family_draw = draw
-        _WIDE[key] = sim
-    return _WIDE[key]
+def _build(lattice, ring: RingSpec, draw: WideDraw, loss_rate_map) -> RingCoupling:
+    """The machine of ``draw`` on the re-tuned ``lattice`` with ``ring``'s knobs."""
+    from pigp_torch.simulation.spear3 import knob_calibration_for, knob_names_for
+
+    names = knob_names_for(ring.knobs, ring.optics)
+    sim = RingCoupling(lattice, names, knob_calibration_for(names, ring.optics),
+                       knob_limit=float(ring.knob_limit), knob_units="A",
+                       error_seed=draw.machine_seed, error_scale=draw.error_scale,
+                       loss_rate_map=loss_rate_map, name=f"SPEAR3 {ring.optics} wide")  # fmt: skip
+    sim.family_draw = draw
+    return sim
