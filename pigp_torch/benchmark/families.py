@@ -115,6 +115,13 @@ def check_wide_ring(ring: RingSpec, machine_maps=True) -> None:
         )
 
 
+def check_machines(family: str, ring: RingSpec, machine_maps=True) -> None:
+    """Raise ``ValueError`` where ``family`` is unknown or cannot build ``ring``'s machines with
+    ``machine_maps`` (:func:`check_family`, :func:`check_wide_ring`)."""
+    if check_family(family) == "wide":
+        check_wide_ring(ring, machine_maps)
+
+
 def wide_machine(machine_seed: int, ring: RingSpec) -> RingCoupling:
     r"""Wide machine ``machine_seed`` of the SPEAR3 ``ring`` (its knobs and knob limit): the
     re-tuned deck, the seed's errors at the drawn scale, the map that gives the drawn

@@ -41,7 +41,7 @@ import torch
 from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.archive import machine_archive
 from pigp_torch.benchmark.distributed import check_scheduler, run_jobs
-from pigp_torch.benchmark.families import check_family, check_wide_ring
+from pigp_torch.benchmark.families import check_machines
 from pigp_torch.benchmark.machines import (
     _maps_key,
     benchmark_ring,
@@ -275,9 +275,7 @@ def run_benchmark(
             (:func:`machine_loss_map`); ``False``: the model's constants; ``(a, b)``: the
             model's background times ``a`` and Touschek scale times ``b`` (:func:`benchmark_ring`).
         prior_source: ``"exact"`` (default) or ``"surrogate"`` (:func:`model_prior`).
-        family: the machines: ``"project"`` (default) or ``"wide"`` (SPEAR3 user deck only,
-            ``machine_maps`` must be ``True``; :mod:`~pigp_torch.benchmark.families`). The
-            prior's model ring is the same in both.
+        family: ``"project"`` (default) or ``"wide"`` (:func:`benchmark_ring`; same prior).
 
     Returns:
         DataFrame with columns ``method, machine_seed, step, <knobs>, y, ask_time_s,
@@ -294,10 +292,8 @@ def run_benchmark(
     seeds = [int(s) for s in machine_seeds]
     budgets = _check_arguments(
         specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler,
-        center_ensemble,
+        center_ensemble, (family, ring, _maps_key(machine_maps)),
     )  # fmt: skip
-    if check_family(family) == "wide":
-        check_wide_ring(ring, _maps_key(machine_maps))
     if not any(spec.uses_center_ensemble for spec in specs):
         center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
     if prior is None:
@@ -305,9 +301,8 @@ def run_benchmark(
             seeds, model_seed, noise, ring, center_ensemble, progress, prior_source
         )
     _check_prior_knobs(prior, ring, seeds[0])
-    shared = dict(noise=float(noise), archive_size=int(archive_size), ring=ring)
+    shared = dict(noise=float(noise), archive_size=int(archive_size), ring=ring, family=family)
     shared.update(optimum_starts=int(optimum_starts), machine_maps=_maps_key(machine_maps))
-    shared["family"] = family
     return _run_all(specs, seeds, prior, budgets, shared, scheduler, int(n_workers), progress)
 
 
@@ -330,10 +325,11 @@ def _run_all(specs, seeds, prior, budgets, shared, scheduler, n_workers, progres
 
 
 def _check_arguments(
-    specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler, center_ensemble
-) -> dict[str, int]:
+    specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler, center_ensemble,
+    machines=("project", None, True)) -> dict[str, int]:  # fmt: skip
     """The checks of :func:`run_benchmark`'s arguments, before anything expensive (an
-    unreachable cluster fails before the prior is computed); returns the budgets by class."""
+    unreachable cluster fails before the prior is computed); returns the budgets by class.
+    ``machines``: ``(family, ring, machine_maps)``."""
     if not seeds:
         raise ValueError("no machine seeds given")
     if len(set(seeds)) != len(seeds):
@@ -360,6 +356,7 @@ def _check_arguments(
         check_scheduler(scheduler)
     if int(center_ensemble) < 0:
         raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
+    check_machines(*machines)
     return budgets
 
 
