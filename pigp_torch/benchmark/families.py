@@ -51,7 +51,7 @@ TUNE_SPREAD = 0.02
 #: ``Spear3Coupling(s).error_scale`` over ``ensemble_seeds(40)`` (rings 1008 and 1015; a slow
 #: test recomputes them)
 ERROR_SCALE_RANGE = (1.2164662220304463, 4.0555788757109985)
-#: range of a wide machine's peak loss rate f* (mA/min): the paper's ring, skews off to optimum
+#: range of a wide machine's peak loss rate f* (mA/min), up to the paper's optimum of 1.7 mA/min
 PEAK_RANGE = (0.9, 1.7)
 #: range of a wide machine's background f_inf (mA/min)
 BACKGROUND_RANGE = (0.05, 0.35)
