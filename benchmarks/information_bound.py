@@ -8,7 +8,7 @@ script estimates that number for each machine with everything in the optimizer's
 
 * the machine's own physics form is known exactly (its unconstrained optimum
   :math:`\boldsymbol\mu`, its shape :math:`B` there and :math:`c = (f(\boldsymbol\mu) -
-  f_\infty)^{-2}`, from :func:`~pigp_torch.simulation.ensemble.ensemble_optima`), so the only
+  f_\infty)^{-2}`, from :func:`~pigp_torch.benchmark.oracle.machine_peak`), so the only
   error is the noise;
 * the parameters :math:`\theta = (\boldsymbol\mu, \log c, \log\beta)` carry the same priors as in
   ``pigp-physics`` (the ensemble's centre covariance), and the Laplace covariance
@@ -32,8 +32,10 @@ closer by luck), and a real run must also climb from the start point and learn
 :math:`\boldsymbol\mu` first. A machine whose ``n95`` is near or above 40 cannot be expected to
 reach 95 % within 40 evaluations by any method that must find its optimum from readings.
 
-The machines are the benchmark's (each with its own loss-rate map unless ``--model-maps``); the
-oracle also knows the machine's own background. Results: ``docs/results.md``.
+The machines are the benchmark's (each with its own loss-rate map unless ``--model-maps``), of
+the family ``--family`` (``project``, default, or ``wide``:
+:mod:`~pigp_torch.benchmark.families`); the oracle also knows the machine's own background.
+Results: ``docs/results.md``.
 
 Usage::
 
@@ -51,11 +53,12 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.benchmark import model_prior
+from pigp_torch.benchmark.families import FAMILIES
+from pigp_torch.benchmark.oracle import machine_peak
 from pigp_torch.benchmark.protocol import benchmark_ring, machine_optimum
 from pigp_torch.models import InverseSqrtPeakModel
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.ensemble import ensemble_optima
+from pigp_torch.simulation.ring import RingCoupling
 from pigp_torch.simulation.spec import SPEAR3
 
 
@@ -109,7 +112,7 @@ def greedy_design(model: InverseSqrtPeakModel, X: torch.Tensor, budget: int, bar
 
 def replay(
     model: InverseSqrtPeakModel,
-    sim: Spear3Coupling,
+    sim: RingCoupling,
     X: torch.Tensor,
     f_star: float,
     repeats: int,
@@ -154,8 +157,15 @@ def main(argv=None) -> None:
         help="machines with the model's loss-rate constants (default: each its own map, as in "
         "the benchmark)",
     )  # fmt: skip
+    ap.add_argument(
+        "--family", choices=FAMILIES, default="project",
+        help="machine family (default project; wide: re-tuned deck, drawn error scale, peak and "
+        "background per machine, own loss-rate maps only)",
+    )  # fmt: skip
     ap.add_argument("--csv", default=None, help="also write seed, n95, bar, ... to this CSV")
     args = ap.parse_args(argv)
+    if args.family == "wide" and args.model_maps:
+        ap.error("the wide family draws each machine's own loss-rate map: drop --model-maps")
     torch.set_default_dtype(DTYPE)
     if args.prior:
         prior = PhysicsPrior.load(args.prior)
@@ -171,11 +181,10 @@ def main(argv=None) -> None:
     maps = not args.model_maps
     rows = []
     for seed in args.seeds:
-        sim: Spear3Coupling = benchmark_ring(seed, SPEAR3, maps)
+        sim = benchmark_ring(seed, SPEAR3, maps, args.family)
         if list(sim.knob_names) != list(prior.knob_names):
             raise SystemExit("the prior is for other knobs than the benchmark's (paper13)")
-        opt = ensemble_optima([seed], model=sim)
-        mu, B = opt.centers[0], opt.shapes[0]
+        mu, B = machine_peak(sim)
         f_mu = float(sim.loss_rate(mu))
         # the oracle knows the machine's own background too
         own = dataclasses.replace(prior, f_inf=float(sim.loss_background))
@@ -186,7 +195,7 @@ def main(argv=None) -> None:
             [mu, torch.tensor([-2.0 * math.log(f_mu - model.f_inf), 0.0], dtype=DTYPE)]
         )
         f0 = float(sim.loss_rate(torch.zeros(sim.dim, dtype=DTYPE)))
-        f_star = machine_optimum(seed, 8, machine_maps=maps)
+        f_star = machine_optimum(seed, 8, machine_maps=maps, family=args.family)
         bar = 0.05 * (f_star - f0)
         x_hat, active = model.box_optimum()
         half = (sim.bounds[1] - sim.bounds[0]) / 2
@@ -210,7 +219,8 @@ def main(argv=None) -> None:
             + check,
             flush=True,
         )
-        rows.append({"machine_seed": seed, "n95": n95 if isinstance(n95, int) else float("inf"),
+        rows.append({"family": args.family, "machine_seed": seed,
+                     "n95": n95 if isinstance(n95, int) else float("inf"),
                      "bar": bar, "f0": f0, "f_star": f_star, "beyond": beyond})  # fmt: skip
     if args.csv:
         import pandas as pd

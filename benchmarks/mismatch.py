@@ -29,6 +29,7 @@ import pandas as pd
 from screen_physics import parse_variant  # the sibling script (benchmarks/ is on sys.path)
 
 from pigp_torch.benchmark import METHODS, run_benchmark
+from pigp_torch.benchmark.families import FAMILIES
 from pigp_torch.benchmark.mismatch import cases
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
 from pigp_torch.benchmark.scoring import first_moves, run_scores
@@ -76,6 +77,9 @@ def main(argv=None) -> int:
                    help="pigp-physics variants: name or name=key=value,...")  # fmt: skip
     p.add_argument("--baselines", nargs="*", default=["ml2", "xopt-ucb"])
     p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--family", choices=FAMILIES, default="project",
+                   help="machine family (default project); the wide family runs only the cases "
+                   "that keep the machines' own loss-rate maps")  # fmt: skip
     p.add_argument("--cache", default="runs/mismatch_priors", help="folder of built priors")
     p.add_argument("-o", "--out", default="runs/mismatch.csv")
     args = p.parse_args(argv)
@@ -106,6 +110,8 @@ def main(argv=None) -> int:
             raise SystemExit(f"unknown cases {sorted(unknown)}; known: {[c.name for c in suite]}")
         by_name = {c.name: c for c in suite}
         suite = [by_name[n] for n in dict.fromkeys(args.cases)]  # in the order given
+    if args.family == "wide":  # a wide machine draws its own map: no loss-map cases
+        suite = [c for c in suite if c.machine_maps is True]
     variants = [parse_variant(v) for v in args.variants]
     frames = []
     for case in suite:
@@ -117,7 +123,8 @@ def main(argv=None) -> int:
             specs += [METHODS[m] for m in args.baselines]
         print(f"case {case.name}: {[s.name for s in specs]} on {len(seeds)} machines", flush=True)
         df = run_benchmark(specs, seeds, prior=prior, n_workers=args.workers,
-                           machine_maps=case.machine_maps, progress=False)  # fmt: skip
+                           machine_maps=case.machine_maps, progress=False,
+                           family=args.family)  # fmt: skip
         df.insert(0, "case", case.name)
         frames.append(df)
         pd.concat(frames).to_csv(args.out, index=False)

@@ -2,7 +2,8 @@
 
 The run CSVs of ``benchmarks/run_table.py`` and ``benchmarks/mismatch.py`` hold every evaluation
 (about 1 MB per 24 runs); this writes one row per run: ``case`` (``control`` for a run table
-without one), ``method``, ``machine_seed``, steps to 95 % (budget + 1 when unreached), whether
+without one), ``family`` (the machine family, ``project`` for a table without one),
+``method``, ``machine_seed``, steps to 95 % (budget + 1 when unreached), whether
 reached, steps within max(5 %, σn), the gain fraction after 20 / 40 / 100 evaluations, the
 median compute per ask (ms) and the evaluation at which the prior check moved on (empty when it
 did not).
@@ -21,18 +22,20 @@ from pigp_torch.benchmark.scoring import first_moves, run_scores
 
 
 def scores_of(df: pd.DataFrame) -> pd.DataFrame:
-    """One row per ``(case, method, machine_seed)`` of an evaluation table."""
+    """One row per ``(case, family, method, machine_seed)`` of an evaluation table."""
     if "case" not in df.columns:
         df = df.assign(case="control")
+    if "family" not in df.columns:
+        df = df.assign(family="project")
     out = []
-    for case, g in df.groupby("case", sort=False):
-        s = run_scores(g).assign(case=case)
+    for (case, family), g in df.groupby(["case", "family"], sort=False):
+        s = run_scores(g).assign(case=case, family=family)
         keys = pd.MultiIndex.from_frame(s[["method", "machine_seed"]])
         ask = g[g["step"] > 0].groupby(["method", "machine_seed"])["ask_time_s"].median()
         s["ask_ms_median"] = 1e3 * ask.reindex(keys).to_numpy()
         s["prior_rejected_at"] = first_moves(g).reindex(keys).to_numpy()
         out.append(s)
-    cols = ["case", "method", "machine_seed", "budget", "steps_to_95", "reached_95",
+    cols = ["case", "family", "method", "machine_seed", "budget", "steps_to_95", "reached_95",
             "steps_within", "gain_20", "gain_40", "gain_100", "ask_ms_median",
             "prior_rejected_at"]  # fmt: skip
     out = pd.concat(out, ignore_index=True)[cols]

@@ -13,7 +13,8 @@ knobs, budgets 100 / 300 evaluations).
 
 ``pigp-physics-oracle`` (:data:`pigp_torch.benchmark.oracle.ORACLE`, each machine's own shape,
 background and peak) is accepted as a reference; ``--suffix=-exact`` labels a run with another
-prior file.
+prior file. ``--family wide`` runs the wide family of machines
+(:mod:`~pigp_torch.benchmark.families`; the table's ``family`` column says which).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
+from pigp_torch.benchmark.families import FAMILIES
 from pigp_torch.benchmark.oracle import ORACLE
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
@@ -37,12 +39,15 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", default="1-24", help="machine error seeds (default 1-24)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--suffix", default="", help="appended to the method names (e.g. -exact)")
+    p.add_argument("--family", choices=FAMILIES, default="project",
+                   help="machine family (default project)")  # fmt: skip
     p.add_argument("-o", "--out", required=True, help="CSV of every evaluation")
     args = p.parse_args(argv)
     prior = PhysicsPrior.load(args.prior)
     known = {**METHODS, ORACLE.name: ORACLE}  # the oracle is a reference, not a product method
     specs = [known[m].with_options(name=m + args.suffix) for m in args.methods]
-    df = run_benchmark(specs, seed_list(args.seeds), prior=prior, n_workers=args.workers)
+    df = run_benchmark(specs, seed_list(args.seeds), prior=prior, n_workers=args.workers,
+                       family=args.family)  # fmt: skip
     df.to_csv(args.out, index=False)
     cols = ["n_reached_95", "steps_to_95_median", "gain_20_median", "gain_40_median",
             "gain_100_median", "ask_time_s_median"]  # fmt: skip

@@ -5,7 +5,8 @@ protocol (own loss-rate map per machine, noise 0.04, 100 evaluations, start at z
 the exact-model prior of model ring 0 and its 40-ring error ensemble, and prints per variant:
 machines at 95 % of the gain, median steps-to-95 %, median gain after 20 / 40 / 100
 evaluations and the median compute per ask. ``--prior FILE`` screens with a kept prior instead
-(e.g. the product's ``docs/data/prior_spear3_seed0_surrogate.json``).
+(e.g. the product's ``docs/data/prior_spear3_seed0_surrogate.json``). ``--family wide`` screens
+on the wide family's tuning machines (:mod:`~pigp_torch.benchmark.families`).
 
     python benchmarks/screen_physics.py --seeds 101-112 --workers 2 \\
         default "fit_bg=f_inf_std=0.03" "beta1=beta=1.0"
@@ -22,6 +23,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import pandas as pd
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
+from pigp_torch.benchmark.families import FAMILIES
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
 from pigp_torch.optimizers.physics_bo import BROADER_SHAPE, relaxed_stages
 from pigp_torch.prior import PhysicsPrior
@@ -60,6 +62,8 @@ def main(argv=None) -> int:
         help="prior JSON file (default: the exact-model prior of model "
         "ring 0 with its 40-ring ensemble, computed here)",
     )
+    p.add_argument("--family", choices=FAMILIES, default="project",
+                   help="machine family (default project)")  # fmt: skip
     p.add_argument("-o", "--out", default="runs/screen.csv")
     args = p.parse_args(argv)
     a, b = (int(v) for v in args.seeds.split("-"))
@@ -74,7 +78,7 @@ def main(argv=None) -> int:
         name, options = parse_variant(text)
         specs.append(METHODS["pigp-physics"].with_options(name=name, **options))
     df = run_benchmark(specs, range(a, b + 1), prior=prior, n_workers=args.workers,
-                       budgets={"gp": args.budget})  # fmt: skip
+                       budgets={"gp": args.budget}, family=args.family)  # fmt: skip
     df.to_csv(args.out, index=False)
     s = summarize(df)
     cols = ["n_reached_95", "steps_to_95_median", "gain_20_median", "gain_40_median",

@@ -6,6 +6,9 @@ the per-machine oracle bound of ``benchmarks/information_bound.py --csv``. Print
 machines at 95 %, median (IQR) steps to 95 % (an unreached run counts budget + 1), median (IQR)
 ratio steps-to-95 / n95, steps within max(5 %, σn), gains after 20 / 40 / 100, compute per ask
 (median / p90, ms); then per machine the steps of each method and n95; then the paper's claims.
+Runs on machines of another family than ``project`` (the tables' ``family`` column,
+:mod:`~pigp_torch.benchmark.families`) are labelled ``method [family]``, so one table reports
+both families; the n95 CSV is matched by family and machine seed.
 
     python benchmarks/table_summary.py runs/table_main.csv runs/table_xopt.csv --n95 runs/n95.csv
 """
@@ -30,11 +33,21 @@ def main(argv=None) -> int:
     p.add_argument("--n95", default=None, help="oracle bound CSV (machine_seed, n95)")
     args = p.parse_args(argv)
     df = pd.concat([pd.read_csv(f) for f in args.csv], ignore_index=True)
+    df["family"] = df["family"].fillna("project") if "family" in df else "project"
+    other = df["family"] != "project"
+    df.loc[other, "method"] = df.loc[other, "method"] + " [" + df.loc[other, "family"] + "]"
     scores = run_scores(df)
+    family = df.drop_duplicates(["method", "machine_seed"]).set_index(["method", "machine_seed"])
+    keys = pd.MultiIndex.from_frame(scores[["method", "machine_seed"]])
+    scores["family"] = family["family"].reindex(keys).to_numpy()
     n95 = None
     if args.n95:
-        n95 = pd.read_csv(args.n95).set_index("machine_seed")["n95"]
-        scores["n95"] = scores["machine_seed"].map(n95)
+        bound = pd.read_csv(args.n95)
+        if "family" not in bound:
+            bound["family"] = "project"
+        n95 = bound.set_index(["family", "machine_seed"])["n95"]
+        keys = pd.MultiIndex.from_frame(scores[["family", "machine_seed"]])
+        scores["n95"] = n95.reindex(keys).to_numpy()
         scores["ratio"] = scores["steps_to_95"] / scores["n95"]
     lines = ["| method | budget | reached 95 % | steps to 95 % | ratio to n95 | steps within "
              "max(5 %, σn) | gain after 20 | gain after 40 | gain after 100 | ms per ask |",
@@ -51,7 +64,9 @@ def main(argv=None) -> int:
     print("\n".join(lines))
     wide = scores.pivot(index="machine_seed", columns="method", values="steps_to_95")
     if n95 is not None:
-        wide["n95"] = wide.index.map(n95)
+        for fam_name, g in n95.groupby(level="family"):
+            label = "n95" if fam_name == "project" else f"n95 [{fam_name}]"
+            wide[label] = wide.index.map(g.droplevel("family"))
     print("\nsteps to 95 % per machine (budget + 1 = not reached)")
     print(wide.to_string())
     med = scores.groupby("method", sort=False)["steps_to_95"].median()

@@ -130,11 +130,28 @@ def centre_shift(prior: PhysicsPrior, k: float, half_range: torch.Tensor) -> tor
     return float(k) * math.sqrt(float(lam[-1])) * v
 
 
-def retuned_model(dnu: float, model_seed: int = 0, optics: str = "user"):
-    """The SPEAR3 model ring ``model_seed`` with both tunes moved by ``dnu`` (QF, QD)."""
+def retuned_lattice(dnu_x: float, dnu_y: float, optics: str = "user"):
+    r"""The ideal SPEAR3 deck ``optics`` (an ``at.Lattice``, no errors) with its tunes moved by
+    :math:`(\Delta\nu_x, \Delta\nu_y)` = ``(dnu_x, dnu_y)``: ``at.fit_tune`` on the QF and QD
+    families (4 iterations)."""
+    import contextlib
+    import io
+
     import at
 
     from pigp_torch.simulation import deck
+
+    ring = deck.spear3_ring(optics).deepcopy()
+    nu = ring.get_tune(get_integer=True)[:2]
+    with contextlib.redirect_stdout(io.StringIO()):  # fit_tune prints every iteration
+        at.fit_tune(ring, at.get_refpts(ring, "QF"), at.get_refpts(ring, "QD"),
+                    [nu[0] + dnu_x, nu[1] + dnu_y], niter=4)  # fmt: skip
+    return ring
+
+
+def retuned_model(dnu: float, model_seed: int = 0, optics: str = "user"):
+    """The SPEAR3 model ring ``model_seed`` with both tunes moved by ``dnu`` (QF, QD;
+    :func:`retuned_lattice`)."""
     from pigp_torch.simulation.ring import RingCoupling
     from pigp_torch.simulation.spear3 import (
         LOSS_RATE_MAP,
@@ -142,10 +159,7 @@ def retuned_model(dnu: float, model_seed: int = 0, optics: str = "user"):
         knob_names_for,
     )
 
-    ring = deck.spear3_ring(optics).deepcopy()
-    nu = ring.get_tune(get_integer=True)[:2]
-    at.fit_tune(ring, at.get_refpts(ring, "QF"), at.get_refpts(ring, "QD"),
-                [nu[0] + dnu, nu[1] + dnu], niter=4)  # fmt: skip
+    ring = retuned_lattice(dnu, dnu, optics)
     names = knob_names_for("paper13", optics)
     return RingCoupling(ring, names, knob_calibration_for(names, optics), knob_units="A",
                         error_seed=int(model_seed), loss_rate_map=LOSS_RATE_MAP,

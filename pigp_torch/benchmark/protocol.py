@@ -8,6 +8,9 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
   :math:`f_\infty (1 + d)` and Touschek scale :math:`g (1 + \epsilon)`, :math:`d \sim
   U[-0.8, 0.3]`, :math:`\epsilon \sim U[-0.3, 0.3]` (vacuum, beam current and fill pattern set
   them; no lattice model knows them). ``machine_maps=False`` gives every machine the model's.
+  This is the ``"project"`` family of machines (the default); ``family="wide"`` draws machines
+  that vary as much as real rings (tunes, error scale, peak and background per machine;
+  :mod:`~pigp_torch.benchmark.families`). Every run table carries a ``family`` column.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
   with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors),
   with the same knob set as the machines (``knobs="paper13"``: the 13 windings of the paper;
@@ -38,6 +41,7 @@ import torch
 from pigp_torch._utils import DTYPE, default_dtype
 from pigp_torch.benchmark.archive import machine_archive
 from pigp_torch.benchmark.distributed import check_scheduler, run_jobs
+from pigp_torch.benchmark.families import check_machines
 from pigp_torch.benchmark.machines import (
     _maps_key,
     benchmark_ring,
@@ -60,6 +64,8 @@ NOISE = 0.04
 ENSEMBLE_SIZE = 40
 #: Score columns added to the loop's table, in order.
 SCORE_COLUMNS = ("machine_seed", "f_true", "best_f_true", "f0", "f_star", "gain_fraction")
+#: Column of every run table that names the machine family (after the score columns).
+FAMILY_COLUMN = "family"
 
 
 def run_seed(method: str, machine_seed: int) -> int:
@@ -153,11 +159,14 @@ def run_one(
     knobs=None,
     ring: RingSpec | None = None,
     machine_maps=True,
+    family: str = "project",
 ) -> pd.DataFrame:
-    """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows).
+    """One run of ``spec`` on machine ``machine_seed``: the scored tidy table (``budget`` rows,
+    its last column ``family``).
 
     The machine has its own loss-rate map (:func:`machine_loss_map`) unless ``machine_maps`` is
-    false; the prior always has the model's.
+    false; the prior always has the model's. ``family``: ``"project"`` (default) or ``"wide"``
+    (:func:`~pigp_torch.benchmark.machines.benchmark_ring`).
 
     ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
     The run executes with torch's default dtype set to float64 (the caller's is restored): BoTorch
@@ -169,13 +178,13 @@ def run_one(
 
     Raises:
         ValueError: ``prior`` is for other knobs than ``ring``'s (names must match in order), or
-            ``None`` for a method that needs one.
+            ``None`` for a method that needs one; a family that cannot build ``ring``'s machines.
     """
     if prior is None and spec.needs_prior:
         raise ValueError(f"method {spec.name} needs a physics prior")
     spec_ring = as_ring_spec(ring, knobs=knobs)
     with default_dtype(DTYPE):  # same numbers whatever the process imported (xopt: float64)
-        sim = benchmark_ring(int(machine_seed), spec_ring, machine_maps)
+        sim = benchmark_ring(int(machine_seed), spec_ring, machine_maps, family)
         if prior is not None and list(prior.knob_names) != list(sim.knob_names):
             raise ValueError(
                 f"the prior is for {prior.dim} knobs {prior.knob_names[:3]}..., the machines have "
@@ -200,10 +209,13 @@ def run_one(
             notes.setdefault(int(n["at_told"]), n["kind"])
         table["notice"] = [notes.get(int(s), "") for s in table["step"]]
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
-            return score_run(table, sim, float("nan"))
-        f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring,
-                                 machine_maps=machine_maps)  # fmt: skip
-        return score_run(table, sim, f_star)
+            f_star = float("nan")
+        else:
+            f_star = machine_optimum(machine_seed, optimum_starts, ring=spec_ring,
+                                     machine_maps=machine_maps, family=family)  # fmt: skip
+        scored = score_run(table, sim, f_star)
+        scored[FAMILY_COLUMN] = family
+        return scored
 
 
 def _run_job(args) -> pd.DataFrame:
@@ -230,6 +242,7 @@ def run_benchmark(
     ring: RingSpec | None = None,
     machine_maps=True,
     prior_source: str = "exact",
+    family: str = "project",
 ) -> pd.DataFrame:
     r"""Run every method on every machine seed; one tidy row per evaluation.
 
@@ -262,23 +275,24 @@ def run_benchmark(
             (:func:`machine_loss_map`); ``False``: the model's constants; ``(a, b)``: the
             model's background times ``a`` and Touschek scale times ``b`` (:func:`benchmark_ring`).
         prior_source: ``"exact"`` (default) or ``"surrogate"`` (:func:`model_prior`).
+        family: ``"project"`` (default) or ``"wide"`` (:func:`benchmark_ring`; same prior).
 
     Returns:
         DataFrame with columns ``method, machine_seed, step, <knobs>, y, ask_time_s,
-        eval_time_s, f_true, best_f_true, f0, f_star, gain_fraction``, ordered by method and
-        machine seed (as given), step; ``step`` 0 is the start point (skews off).
+        eval_time_s, f_true, best_f_true, f0, f_star, gain_fraction, ..., family``, ordered by
+        method and machine seed (as given), step; ``step`` 0 is the start point (skews off).
 
     Raises:
         ValueError: ``model_seed`` or an ensemble seed among ``machine_seeds``, duplicate
             seeds, unknown methods or budget classes, bad budgets/noise/worker counts, a prior
-            for other knobs.
+            for other knobs, an unknown family or one that cannot build ``ring``'s machines.
         ConnectionError: the Dask scheduler cannot be reached (or has no workers) in time.
     """
     specs, ring = resolve_methods(methods), as_ring_spec(ring, knobs=knobs)
     seeds = [int(s) for s in machine_seeds]
     budgets = _check_arguments(
         specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler,
-        center_ensemble,
+        center_ensemble, (family, ring, _maps_key(machine_maps)),
     )  # fmt: skip
     if not any(spec.uses_center_ensemble for spec in specs):
         center_ensemble = 0  # no method reads it: skip the ensemble's optimum searches
@@ -287,7 +301,7 @@ def run_benchmark(
             seeds, model_seed, noise, ring, center_ensemble, progress, prior_source
         )
     _check_prior_knobs(prior, ring, seeds[0])
-    shared = dict(noise=float(noise), archive_size=int(archive_size), ring=ring)
+    shared = dict(noise=float(noise), archive_size=int(archive_size), ring=ring, family=family)
     shared.update(optimum_starts=int(optimum_starts), machine_maps=_maps_key(machine_maps))
     return _run_all(specs, seeds, prior, budgets, shared, scheduler, int(n_workers), progress)
 
@@ -311,10 +325,11 @@ def _run_all(specs, seeds, prior, budgets, shared, scheduler, n_workers, progres
 
 
 def _check_arguments(
-    specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler, center_ensemble
-) -> dict[str, int]:
+    specs, seeds, model_seed, budgets, noise, n_workers, optimum_starts, scheduler, center_ensemble,
+    machines=("project", None, True)) -> dict[str, int]:  # fmt: skip
     """The checks of :func:`run_benchmark`'s arguments, before anything expensive (an
-    unreachable cluster fails before the prior is computed); returns the budgets by class."""
+    unreachable cluster fails before the prior is computed); returns the budgets by class.
+    ``machines``: ``(family, ring, machine_maps)``."""
     if not seeds:
         raise ValueError("no machine seeds given")
     if len(set(seeds)) != len(seeds):
@@ -341,6 +356,7 @@ def _check_arguments(
         check_scheduler(scheduler)
     if int(center_ensemble) < 0:
         raise ValueError(f"center_ensemble must be >= 0, got {center_ensemble}")
+    check_machines(*machines)
     return budgets
 
 

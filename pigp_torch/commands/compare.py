@@ -103,10 +103,13 @@ def cmd_compare(args) -> int:
         center_ensemble=args.center_ensemble,
         machine_maps=not args.model_maps,
         prior_source=args.prior_source,
+        family=args.family,
     )
     n_knobs = ring.build(args.model_seed).dim  # cached: the model ring was built already
     name = "spear3" if ring.is_spear3 else Path(ring.lattice).stem
     title = f"{name}-{n_knobs}, model seed {args.model_seed}"
+    if args.family != "project":
+        title += f", {args.family} machines"
     write_comparison(df, args.out, title)
     return 0
 
@@ -150,6 +153,15 @@ def register(sub, bench) -> None:
         action="store_true",
         help="give every machine the model's loss-rate constants (default: each machine its "
         "own background and Touschek scale, drawn from its seed)",
+    )
+    p.add_argument(
+        "--family",
+        choices=["project", "wide"],
+        default="project",
+        help="machine family: project (default: the user deck, coupling calibrated to 0.71 %%) "
+        "or wide (per machine: tunes moved by up to +-0.02, the error scale between the "
+        "ensemble's extremes, peak 0.9-1.7 mA/min and background 0.05-0.35 mA/min; SPEAR3 user "
+        "deck only, without --model-maps)",
     )
     p.add_argument("--model-seed", type=int, default=0, help="error seed of the model ring")
     p.add_argument("--budget-gp", type=int, default=100, help="evaluations for GP methods")

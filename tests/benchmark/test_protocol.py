@@ -40,7 +40,7 @@ def test_table_layout_one_row_per_evaluation(tiny_table):
     """One row per evaluation per run, steps 0..budget-1 in order, start at all skews zero."""
     names = Spear3Coupling(1).knob_names
     expected = ["method", "machine_seed", "step", *names, "y", *TIMING, "notice"]
-    expected += ["f_true", "best_f_true", "f0", "f_star", "gain_fraction"]
+    expected += ["f_true", "best_f_true", "f0", "f_star", "gain_fraction", "family"]
     assert list(tiny_table.columns) == expected
     counts = tiny_table.groupby(["method", "machine_seed"], sort=False).size()
     budgets = [BUDGETS["gp"]] * 6 + [BUDGETS["direct"]] * 4

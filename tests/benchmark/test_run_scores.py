@@ -96,3 +96,31 @@ def test_the_mismatch_table_takes_the_baselines_from_kept_scores(script, tmp_pat
     assert table.main([str(slower), "--control", str(control), "--baseline-scores", str(kept)]) == 0
     row = next(r for r in capsys.readouterr().out.splitlines() if r.startswith("| rot45"))
     assert [c.strip() for c in row.split("|")[1:-1]][5:7] == ["**no**", "**no**"]
+
+
+def test_scores_keep_runs_of_two_families_apart(script):
+    """Machine 1 of the project and of the wide family are two runs, each scored on its own."""
+    a = _with(_run("a", 1, [0.5, 1.5, 0.4]), [0, 1, 2]).assign(family="project")
+    b = _with(_run("a", 1, [0.5, 0.6, 0.7]), [0, 1, 2]).assign(family="wide")
+    s = script.scores_of(pd.concat([a, b], ignore_index=True))
+    assert list(s["family"]) == ["project", "wide"]
+    assert list(s["steps_to_95"]) == [2, 4] and list(s["reached_95"]) == [True, False]
+
+
+def test_the_summary_table_reports_both_families(tmp_path, capsys):
+    """table_summary labels wide-family runs ``method [wide]`` and takes each run's n95 from its
+    own family."""
+    summary = load_script("table_summary")
+    a = _with(_run("a", 1, [0.5, 1.5, 0.4]), [0, 1, 2]).assign(family="project", budget=3)
+    b = _with(_run("a", 1, [0.5, 0.6, 1.46]), [0, 1, 2]).assign(family="wide", budget=3)
+    path = tmp_path / "runs.csv"
+    pd.concat([a, b], ignore_index=True).to_csv(path, index=False)
+    n95 = tmp_path / "n95.csv"
+    pd.DataFrame({"family": ["project", "wide"], "machine_seed": [1, 1], "n95": [4, 2]}).to_csv(
+        n95, index=False
+    )
+    assert summary.main([str(path), "--n95", str(n95)]) == 0
+    out = capsys.readouterr().out
+    # steps to 95 %: 2 (project) and 3 (wide); ratios to n95: 2 / 4 and 3 / 2
+    assert "| `a` | 3 | 1/1 | 2.0 (2.0–2.0) | 0.50 (0.50–0.50) |" in out
+    assert "| `a [wide]` | 3 | 1/1 | 3.0 (3.0–3.0) | 1.50 (1.50–1.50) |" in out
