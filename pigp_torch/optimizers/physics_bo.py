@@ -45,6 +45,7 @@ from pigp_torch.optimizers.bo import (
     BOParts,
     CentreInformation,
     MultiStartLBFGSB,
+    Schedule,
     TrustRegion,
 )
 from pigp_torch.optimizers.bo.defaults import PHYSICS_DEFAULTS
@@ -75,6 +76,11 @@ class PhysicsModelBO(BayesianOptimizer):
             flat, so readings there say little about where the centre is; the most informative
             ones lie at about :math:`\sqrt{c/2}` from it in that metric. Default 3 (every
             third ask; 0 turns it off).
+        schedule: the acquisition of every ask as a :class:`~pigp_torch.optimizers.bo.Schedule`
+            of the letters ``u`` (the UCB with ``beta``), ``m`` (the posterior mean, the UCB
+            with :math:`\beta = 0`: a visit of the fitted optimum) and ``i`` (the centre
+            information); overrides ``info_every`` (``None``, default: ``info_every``'s
+            alternation of ``u`` and ``i``).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
             one value or ``d``), or ``None`` (default: none). The search box is the trust box
@@ -151,6 +157,7 @@ class PhysicsModelBO(BayesianOptimizer):
         step_limit: float | None = PHYSICS_DEFAULTS["step_limit"],
         n_starts: int = PHYSICS_DEFAULTS["n_starts"],
         info_every: int = PHYSICS_DEFAULTS["info_every"],
+        schedule: str | None = None,
         seed: int = 0,
         travel_limit=None,
         maximize: bool = True,
@@ -163,11 +170,16 @@ class PhysicsModelBO(BayesianOptimizer):
         region = TrustRegion(bounds, step_limit, "best_mean", travel_limit)
         search = MultiStartLBFGSB(n_starts, maxiter=200)
         posterior = PhysicsFormPosterior(prior, bounds, **posterior_options)
-        acquisition = Alternating(ucb, CentreInformation(), info_every)
+        if schedule is None:
+            acquisition = Alternating(ucb, CentreInformation(), info_every)
+        else:
+            letters = {"u": ucb, "m": UCB(0.0), "i": CentreInformation()}
+            acquisition = Schedule(letters, schedule)
+        self.schedule = schedule
         super().__init__(bounds, BOParts(posterior, acquisition, search, region), seed=seed)
         self.prior = prior
         self.beta = ucb.beta
-        self.n_starts, self.info_every = search.n_starts, acquisition.every
+        self.n_starts, self.info_every = search.n_starts, int(info_every)
         self.travel_limit = region.travel_limit
 
     # -- the physics posterior's state, under the names of the method ---------------------------

@@ -18,7 +18,7 @@ from botorch.acquisition import (
     UpperConfidenceBound,
 )
 
-from pigp_torch.optimizers.bo import EI, UCB, Alternating, CentreInformation, LogEI
+from pigp_torch.optimizers.bo import EI, UCB, Alternating, CentreInformation, LogEI, Schedule
 from tests.contracts.parts import DT, HALF, make_prior, posteriors, readings
 
 PRIOR = make_prior()
@@ -98,3 +98,23 @@ def test_centre_information_and_the_schedule():
         Alternating(UCB(), info, -1)
     with pytest.raises(ValueError, match="beta must be finite"):
         UCB(-1.0)
+
+
+def test_written_schedule():
+    """:class:`Schedule` ``"uui"`` chooses as :class:`Alternating` with ``every = 3`` (asks 1,
+    2, ...); segments with counts come first, the last pattern repeats; bad texts are refused."""
+    post = POSTERIORS["physics"][0]
+    u, m, i = UCB(), UCB(0.0), CentreInformation()
+    alternating, written = Alternating(u, i, 3), Schedule({"u": u, "i": i}, "uui")
+    for step in range(1, 13):
+        alternating.bind(post, BEST, step)
+        written.bind(post, BEST, step)
+        assert written.last is alternating.last
+    sched = Schedule({"u": u, "m": m, "i": i}, "i@3/um@2/mi")
+    assert "".join(sched.letter(k) for k in range(1, 11)) == "iiiummimim"
+    x = _points(0.3).numpy()
+    np.testing.assert_allclose(sched.bind(post, BEST, 4)(x, 0), u.bind(post, BEST, 4)(x, 0))
+    for bad, match in (("uxi", "letters"), ("", "letters"), ("u@2", "no count"),
+                       ("u/i", "count >= 1"), ("u@0/i", "count >= 1")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            Schedule({"u": u, "i": i}, bad)

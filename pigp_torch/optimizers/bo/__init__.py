@@ -13,6 +13,7 @@ from pigp_torch.optimizers.bo.acquisition import (
     BoTorchAcquisition,
     CentreInformation,
     LogEI,
+    Schedule,
     analytic,
     botorch_analytic,
 )
@@ -32,6 +33,7 @@ __all__ = [
     "MultiStartLBFGSB",
     "NewtonSearch",
     "OptimizeAcqf",
+    "Schedule",
     "TrustRegion",
     "analytic",
     "botorch_analytic",

@@ -21,6 +21,7 @@ derivatives up to the order the search asks for, using only those of :math:`\mu`
 * :class:`CentreInformation`: what one more reading tells about the fitted centre of the
   physics form (a posterior with ``centre_information``);
 * :class:`Alternating`: one acquisition every ``every``-th ask, another otherwise;
+* :class:`Schedule`: the acquisition of each ask from a written schedule of letters;
 * :class:`BoTorchAcquisition`: a BoTorch ``AcquisitionFunction`` built on the posterior's BoTorch
   ``model`` (for :class:`~pigp_torch.optimizers.bo.search.OptimizeAcqf`).
 
@@ -207,6 +208,60 @@ class Alternating:
         chosen = self.other if self.every > 0 and step % self.every == 0 else self.main
         self.last = chosen
         return chosen.bind(posterior, best_f, step)
+
+
+class Schedule:
+    """The acquisition of each ask read from a schedule of letters.
+
+    ``schedule`` is a ``/``-separated list of segments ``PATTERN@COUNT``, the last one without a
+    count: the first segment's pattern, repeated, chooses the first ``COUNT`` asks, the next
+    segment the following ones, and the last pattern repeats for the rest of the run. Ask ``k``
+    (``k = step``, 1 for the first ask after the start point) of a segment that began at ask
+    ``s`` uses the letter ``PATTERN[(k - s) % len(PATTERN)]``. E.g. ``"uui"`` is
+    :class:`Alternating` with ``every = 3`` (asks 3, 6, ... the second acquisition), and
+    ``"i@4/mi"``: four asks of ``i``, then ``m`` and ``i`` alternately.
+
+    Args:
+        acquisitions: the acquisition of each letter.
+        schedule: the schedule text (letters of ``acquisitions`` only).
+
+    Raises:
+        ValueError: an empty pattern, a letter without an acquisition, a count below 1, or a
+            count on the last segment.
+    """
+
+    def __init__(self, acquisitions: dict, schedule: str) -> None:
+        self.acquisitions = dict(acquisitions)
+        self.schedule = str(schedule)
+        self.segments: list[tuple[str, int | None]] = []
+        parts = self.schedule.split("/")
+        for i, part in enumerate(parts):
+            pattern, at, count = part.partition("@")
+            last = i == len(parts) - 1
+            if not pattern or any(c not in self.acquisitions for c in pattern):
+                raise ValueError(
+                    f"schedule {schedule!r}: each pattern needs letters of "
+                    f"{sorted(self.acquisitions)}, got {pattern!r}"
+                )
+            if last and at:
+                raise ValueError(f"schedule {schedule!r}: the last segment repeats, no count")
+            if not last and not (count.isdigit() and int(count) >= 1):
+                raise ValueError(f"schedule {schedule!r}: segment {part!r} needs a count >= 1")
+            self.segments.append((pattern, None if last else int(count)))
+        self.last = None
+
+    def letter(self, step: int) -> str:
+        """The letter of ask ``step`` (1 for the first ask)."""
+        k = int(step) - 1
+        for pattern, count in self.segments:
+            if count is None or k < count:
+                return pattern[k % len(pattern)]
+            k -= count
+        raise AssertionError("unreachable: the last segment has no count")
+
+    def bind(self, posterior, best_f: float, step: int):
+        self.last = self.acquisitions[self.letter(step)]
+        return self.last.bind(posterior, best_f, step)
 
 
 class BoTorchAcquisition:
