@@ -9,12 +9,13 @@ evaluations and the median compute per ask. ``--prior FILE`` screens with a kept
 on the wide family's tuning machines (:mod:`~pigp_torch.benchmark.families`).
 
     python benchmarks/screen_physics.py --seeds 101-112 --workers 2 \\
-        default "fit_bg=f_inf_std=0.03" "beta1=beta=1.0"
+        default "fit_bg=f_inf_std=0.03" "beta1=beta=1.0" 'mi:{"schedule": "mi"}'
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 
@@ -32,7 +33,12 @@ from pigp_torch.prior import PhysicsPrior
 def parse_variant(text: str):
     """``name`` or ``name=key=value,key=value`` -> (name, options); values are numbers,
     ``True``/``False`` or words. Keys ``relax.ARG`` set the prior check's later stages to
-    ``[BROADER_SHAPE, *relaxed_stages(ARG=value, ...)]`` (e.g. ``relax.f_inf_std=0.3``)."""
+    ``[BROADER_SHAPE, *relaxed_stages(ARG=value, ...)]`` (e.g. ``relax.f_inf_std=0.3``).
+    ``name:{JSON}`` gives the options as a JSON object instead (any value, e.g. a
+    ``schedule`` text or a list of ``relax`` stages)."""
+    name, colon, rest = text.partition(":")
+    if colon and rest.startswith("{") and "=" not in name:
+        return name, json.loads(rest)
     name, _, rest = text.partition("=")
     options = {}
     for item in filter(None, rest.split(",")):
