@@ -1,6 +1,7 @@
 """Screen options of ``pigp-physics`` on tuning machines (seeds 101 and up, never 1-24).
 
-Runs each variant (name=option=value,...) on the given machine seeds under the spear3-13
+Runs each variant (name=option=value,...; a name starting with ``oracle``: the oracle
+reference with those options) on the given machine seeds under the spear3-13
 protocol (own loss-rate map per machine, noise 0.04, 100 evaluations, start at zero knobs) with
 the exact-model prior of model ring 0 and its 40-ring error ensemble, and prints per variant:
 machines at 95 % of the gain, median steps-to-95 %, median gain after 20 / 40 / 100
@@ -25,9 +26,17 @@ import pandas as pd
 
 from pigp_torch.benchmark import METHODS, run_benchmark, summarize
 from pigp_torch.benchmark.families import FAMILIES
+from pigp_torch.benchmark.oracle import ORACLE
 from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
 from pigp_torch.optimizers.physics_bo import BROADER_SHAPE, relaxed_stages
 from pigp_torch.prior import PhysicsPrior
+
+
+def base_spec(name: str):
+    """The method a variant modifies: ``pigp-physics``, or the oracle reference
+    (``pigp-physics-oracle``, each machine's own shape, height and background) for a variant
+    whose name starts with ``oracle``."""
+    return ORACLE if name.startswith("oracle") else METHODS["pigp-physics"]
 
 
 def parse_variant(text: str):
@@ -82,7 +91,7 @@ def main(argv=None) -> int:
     specs = []
     for text in args.variants:
         name, options = parse_variant(text)
-        specs.append(METHODS["pigp-physics"].with_options(name=name, **options))
+        specs.append(base_spec(name).with_options(name=name, **options))
     df = run_benchmark(specs, range(a, b + 1), prior=prior, n_workers=args.workers,
                        budgets={"gp": args.budget}, family=args.family)  # fmt: skip
     df.to_csv(args.out, index=False)

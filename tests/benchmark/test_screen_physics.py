@@ -26,3 +26,10 @@ def test_variant_texts(screen):
         "j",
         {"schedule": "i@8/uui", "relax": [{"shape_factor": 3.0}]},
     )
+
+
+def test_oracle_variants(screen):
+    """A variant named oracle... modifies the oracle reference, any other pigp-physics."""
+    assert screen.base_spec("oracle").name == "pigp-physics-oracle"
+    assert screen.base_spec("oracle-beta6").name == "pigp-physics-oracle"
+    assert screen.base_spec("default").name == "pigp-physics"
