@@ -25,8 +25,8 @@ r"""Families of benchmark machines: which SPEAR3 rings the spear3-13 protocol dr
 
   The wide family exists for the SPEAR3 user deck only (any SPEAR3 knob set), and it draws its
   own loss-rate map: ``machine_maps`` must be true (the model's map or scaled maps are a
-  project-family option). The re-tuned lattice and the map are cached per process (they cost a
-  tune fit and an optimum search, seconds).
+  project-family option). The re-tuned lattice and the map are cached per process (each needs a
+  tune fit and an optimum search).
 
 Seeds follow the protocol: report on machines 1-24, tune on 101 and up.
 """
