@@ -19,7 +19,12 @@ class FitTerms:
 
     def _neg_log_post(self, theta: Tensor, X: Tensor, Y: Tensor) -> Tensor:
         d = self.dim
-        r = (Y - self.form(X, theta)) / self.noise
+        P, _ = self.fit_covariance(X)
+        if P is None:
+            data = (((Y - self.form(X, theta)) / self.noise) ** 2).sum()
+        else:
+            e = Y - self.form(X, theta)
+            data = e @ P @ e
         dmu = theta[:d] - self.center0
         if self.center_cov is None:
             pen = ((dmu / self.tau) ** 2).sum()
@@ -31,7 +36,7 @@ class FitTerms:
             pen = pen + (theta[d + 2] / self.f_inf_std) ** 2
         if self.shape_std > 0:
             pen = pen + (theta[self._s_index :] ** 2).sum() / self.shape_std**2
-        return 0.5 * (r**2).sum() + 0.5 * pen
+        return 0.5 * data + 0.5 * pen
 
     def _linear_start(self, X: Tensor, Y: Tensor) -> Tensor | None:
         r"""Weighted least squares of :math:`g_i - \mathbf x_i^\top B\mathbf x_i = a +
@@ -61,28 +66,35 @@ class FitTerms:
 
     def log_evidence(self) -> float:
         r"""Laplace estimate of the log marginal likelihood of the last :meth:`fit`'s data
-        under this model (the residual GP not included):
+        under this model (the residual GP enters through :math:`\Sigma` with ``gls``):
 
         .. math::
-            \log Z \approx -\tfrac12\|\mathbf r\|^2 - \tfrac12\,\mathrm{pen}(\hat\theta)
-            - \tfrac n2 \log(2\pi\sigma_n^2) + \tfrac12\log\det\Lambda_0
-            - \tfrac12\log\det A,
+            \log Z \approx -\tfrac12\mathbf r^\top\Sigma^{-1}\mathbf r
+            - \tfrac12\,\mathrm{pen}(\hat\theta) - \tfrac n2 \log 2\pi
+            - \tfrac12\log\det\Sigma + \tfrac12\log\det\Lambda_0 - \tfrac12\log\det A,
 
-        :math:`\Lambda_0` the prior precision of :math:`\theta`, :math:`A = J^\top J/\sigma_n^2
-        + \Lambda_0` (Gauss-Newton). Two models of the same readings compare by it (a
-        difference of 3 is odds of 20 to 1)."""
+        :math:`\Sigma` the readings' covariance of the fit (:math:`\sigma_n^2 I` without
+        ``gls``), :math:`\Lambda_0` the prior precision of :math:`\theta`, :math:`A =
+        J^\top\Sigma^{-1}J + \Lambda_0` (Gauss-Newton). Two models of the same readings
+        compare by it (a difference of 3 is odds of 20 to 1)."""
         if self.theta is None:
             raise RuntimeError("fit() the model first")
         n = self._n
         return (
             -self.neg_log_post
-            - 0.5 * n * math.log(2 * math.pi * self.noise**2)
+            - (
+                0.5 * n * math.log(2 * math.pi * self.noise**2)
+                if self._log_det_noise is None
+                else 0.5 * n * math.log(2 * math.pi) + 0.5 * self._log_det_noise
+            )
             + 0.5 * self._log_det_prior
             - 0.5 * self._log_det_A
         )
 
     def _laplace(self, X: Tensor) -> None:
         J = self.jacobian(X)
+        P, log_det = self.fit_covariance(X)
+        self._log_det_noise = None if P is None else log_det  # None: n log noise^2
         tail = [self.log_c_std**-2, self.log_beta_std**-2]
         if self.f_inf_std > 0:
             tail.append(self.f_inf_std**-2)
@@ -93,7 +105,8 @@ class FitTerms:
             prior_prec = torch.diag(torch.cat([self.tau**-2, tail.diagonal()]))
         else:
             prior_prec = torch.block_diag(self.center_precision, tail)
-        A = J.T @ J / self.noise**2 + prior_prec
+        A = J.T @ J / self.noise**2 if P is None else J.T @ P @ J
+        A = A + prior_prec
         L = torch.linalg.cholesky(A)
         cov = torch.cholesky_inverse(L)
         self._log_det_A = 2.0 * float(torch.log(L.diagonal()).sum())
@@ -104,8 +117,9 @@ class FitTerms:
 class _NumpyObjective:
     r"""The negative log posterior :meth:`InverseSqrtPeakModel._neg_log_post` and its gradient
     in closed form, in NumPy, for the L-BFGS-B fit:
-    :math:`\nabla = -J^\top \mathbf r / \sigma_n + \tfrac12 \nabla\text{pen}`, :math:`J` as in
-    :meth:`InverseSqrtPeakModel.jacobian` and :math:`\mathbf r = (\mathbf y - f)/\sigma_n`.
+    :math:`\nabla = -J^\top \mathbf w + \tfrac12 \nabla\text{pen}`, :math:`J` as in
+    :meth:`InverseSqrtPeakModel.jacobian` and :math:`\mathbf w = \Sigma^{-1}(\mathbf y - f)`
+    (:math:`(\mathbf y - f)/\sigma_n^2` without ``gls``).
 
     The arrays have 13-100 entries: at these sizes each torch call costs more
     than its arithmetic, and the fit evaluates it hundreds of times an ask.
@@ -115,6 +129,8 @@ class _NumpyObjective:
         self.d = model.dim
         self.X, self.Y = X.numpy(), Y.numpy()
         self.noise = model.noise
+        P, _ = model.fit_covariance(X)
+        self.P_data = None if P is None else P.numpy()
         self.center0 = model.center0.numpy()
         self.P = None if model.center_cov is None else model.center_precision.numpy()
         self.tau2 = (model.tau**2).numpy()
@@ -146,15 +162,22 @@ class _NumpyObjective:
         q = (BD * D).sum(-1)
         g = c + beta * q
         background = self.f_inf + (theta[d + 2] if self.f_inf_std > 0 else 0.0)
-        r = (self.Y - background - g**-0.5) / self.noise
-        # d(0.5 |r|^2)/d theta = -r/noise . df/dtheta, df/dg = -0.5 g^-1.5
-        a = -(r / self.noise) * (-0.5 * g**-1.5)  # n: weight of dg/dtheta
+        if self.P_data is None:
+            r = (self.Y - background - g**-0.5) / self.noise
+            w = r / self.noise
+            data = float((r**2).sum())
+        else:  # gls
+            e = self.Y - background - g**-0.5
+            w = self.P_data @ e
+            data = float(e @ w)
+        # d(data / 2)/d theta = -w . df/dtheta, df/dg = -0.5 g^-1.5
+        a = -w * (-0.5 * g**-1.5)  # n: weight of dg/dtheta
         grad = np.empty_like(theta)
         grad[:d] = -2.0 * beta * (a @ BD)
         grad[d] = c * a.sum()
         grad[d + 1] = beta * (a @ q)
         if self.f_inf_std > 0:
-            grad[d + 2] = -(r / self.noise).sum()
+            grad[d + 2] = -w.sum()
         if self.shape_std > 0:
             grad[self.s_index : self.s_index + d] = beta * (a @ (DV**2)) * lam
         dmu = mu - self.center0
@@ -173,4 +196,4 @@ class _NumpyObjective:
             s = theta[self.s_index :]
             pen += (s**2).sum() / self.shape_std**2
             grad[self.s_index :] += s / self.shape_std**2
-        return float(0.5 * (r**2).sum() + 0.5 * pen), grad
+        return float(0.5 * data + 0.5 * pen), grad

@@ -32,10 +32,12 @@ Fit (MAP, Gaussian noise of known :math:`\sigma_n` on :math:`f`):
     + \tfrac{(\log c - \log c_m)^2}{2 s_c^2} + \tfrac{(\log\beta)^2}{2 s_\beta^2},
 
 (:math:`\mathbf h` the knob half-ranges, :math:`\boldsymbol\mu_0` the box centre unless
-given) by L-BFGS-B from several starts: the previous fit, the prior mean, and the weighted
-linear least-squares solution of :math:`g_i - \mathbf x_i^\top B \mathbf x_i = a +
-\mathbf w^\top \mathbf x_i` (exact for :math:`\beta = 1`). Uncertainty: the Laplace
-(Gauss-Newton) covariance :math:`C` of :math:`\hat\theta`, propagated to :math:`f` by the
+given; with the option ``gls`` the first sum becomes :math:`\tfrac12\mathbf
+r^\top\Sigma^{-1}\mathbf r`, see the end of this docstring) by L-BFGS-B from several starts:
+the previous fit, the prior mean, and the weighted linear least-squares solution of
+:math:`g_i - \mathbf x_i^\top B \mathbf x_i = a + \mathbf w^\top \mathbf x_i` (exact for
+:math:`\beta = 1`). Uncertainty: the Laplace (Gauss-Newton) covariance :math:`C` of
+:math:`\hat\theta`, propagated to :math:`f` by the
 Jacobian :math:`J(\mathbf x) = \partial f / \partial\theta`. What the form misses is modelled
 by a residual GP (zero mean, fixed full-precision RBF kernel with the *machine-scale* precision
 :math:`\hat\beta B / (2\hat c)`, i.e. the physics-informed kernel at the fitted optimum,
@@ -45,6 +47,22 @@ residuals :math:`y_i - f(\mathbf x_i; \hat\theta)`:
 .. math::
     \mu(\mathbf x) = f(\mathbf x;\hat\theta) + \mathbf k(\mathbf x)^\top K^{-1}\mathbf r, \qquad
     \sigma^2(\mathbf x) = J C J^\top + k(\mathbf x, \mathbf x) - \mathbf k^\top K^{-1}\mathbf k .
+
+Generalized least squares (option ``gls``, off by default; needs ``residual_std > 0``). A
+machine is not exactly the form: its :math:`g` is not exactly quadratic away from the peak, and
+the departure is smooth on the scale of the peak's width. Fitted as independent noise, such a
+departure can pull the fitted centre (a biased :math:`\boldsymbol\mu` buys a smaller misfit).
+With ``gls`` the readings' errors are those of the residual GP plus the noise,
+:math:`\mathbf r \sim \mathcal N(0, \Sigma)`, :math:`\Sigma = K + \sigma_n^2 I` (:math:`K`
+the residual kernel above at the told settings, its precision from the :math:`\theta` the fit
+starts from: the previous fit, else :math:`\theta_0`). The data term of the fit is then
+:math:`\tfrac12\mathbf r^\top\Sigma^{-1}\mathbf r`, the Laplace precision
+:math:`J^\top\Sigma^{-1}J + \Lambda_0`, and the evidence has :math:`\log\det\Sigma` in
+place of :math:`n\log\sigma_n^2`: the form and its residual GP as one Gaussian model of the
+readings (universal kriging), in which a smooth departure is explained by the GP rather than
+by the centre. The information of one more reading
+(:meth:`InverseSqrtPeakModel.centre_information`) still treats that reading's error as
+independent of the told ones.
 """
 
 from __future__ import annotations
@@ -100,6 +118,9 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
             :math:`s_k \sim \mathcal N(0, s_B^2)` (``d`` more parameters); the machines' own
             Hessians differ from the model ring's mostly in scale along these directions. ``0``
             (default) keeps :math:`B` fixed.
+        gls: fit with the readings' covariance :math:`\Sigma = K + \sigma_n^2 I` of the
+            residual GP (module docstring); ``False`` (default), or
+            ``residual_std = 0``: independent noise, :math:`\Sigma = \sigma_n^2 I`.
         max_iter: L-BFGS-B iterations per start.
 
     Raises:
@@ -124,6 +145,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         center_floor_std: float = 0.22,
         shape=None,
         shape_std: float = 0.0,
+        gls: bool = False,
         max_iter: int = 300,
     ) -> None:
         self.bounds = check_bounds(bounds)
@@ -174,6 +196,8 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         self.log_c_std = float(log_c_std)
         self.log_beta_std = float(log_beta_std)
         self.residual_std = float(residual_std)
+        self.gls = bool(gls) and self.residual_std > 0
+        self._fit_cov: tuple | None = None  # (X, Sigma^-1, log det Sigma) of the last fit
         self.max_iter = int(max_iter)
         self.theta: Tensor | None = None
         self.cov: Tensor | None = None
@@ -275,6 +299,8 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         Y = torch.as_tensor(Y, dtype=DTYPE).reshape(-1)
         if Y.shape[0] != X.shape[0] or not torch.isfinite(Y).all():
             raise ValueError("Y must be finite with one value per row of X")
+        self._fit_cov = None  # Sigma from the theta the fit starts from
+        self._fit_cov = (X, *self.fit_covariance(X))
         starts = [self.prior_theta()]
         if self.theta is not None:
             starts.insert(0, self.theta)
@@ -320,6 +346,28 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         theta = self._fitted()
         d = self.dim
         return torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
+
+    def fit_covariance(self, X: Tensor) -> tuple[Tensor | None, float]:
+        r"""``(P, log det Sigma)`` of the readings at ``X`` (``n x d``) in the fit:
+        :math:`P = \Sigma^{-1}` (``n x n``) with :math:`\Sigma = K + \sigma_n^2 I` when ``gls``
+        (:math:`K` the residual kernel with the precision of the current :math:`\theta`, else
+        of :math:`\theta_0`), or ``None`` for :math:`\Sigma = \sigma_n^2 I`. The last
+        :meth:`fit`'s own when ``X`` is its data (the same tensor)."""
+        n = X.shape[0]
+        if not self.gls:
+            return None, 2.0 * n * math.log(self.noise)
+        if self._fit_cov is not None and self._fit_cov[0] is X:
+            return self._fit_cov[1], self._fit_cov[2]
+        theta = self.theta
+        if theta is None or theta.shape[0] != self.n_params:
+            theta = self.prior_theta()
+        d = self.dim
+        prec = torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
+        D = X.unsqueeze(-2) - X.unsqueeze(-3)
+        K = self.residual_std**2 * torch.exp(-0.5 * ((D @ prec) * D).sum(-1))
+        L = torch.linalg.cholesky(K + self.noise**2 * torch.eye(n, dtype=DTYPE))
+        P = torch.cholesky_inverse(L)
+        return (P + P.T) / 2, 2.0 * float(torch.log(L.diagonal()).sum())
 
     def _k_res(self, A: Tensor, Bx: Tensor) -> Tensor:
         D = A.unsqueeze(-2) - Bx.unsqueeze(-3)

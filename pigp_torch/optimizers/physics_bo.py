@@ -139,7 +139,9 @@ class PhysicsModelBO(BayesianOptimizer):
             (:class:`~pigp_torch.models.physics_posterior.PhysicsFormPosterior`) and
             :class:`~pigp_torch.models.InverseSqrtPeakModel` options
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
-            ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``).
+            ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``, and
+            ``gls``: the form fitted with the residual GP's covariance of the readings; off by
+            default).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
     ``fitted_peak``, ``acq_value``, ``inform``, ``misfit_z``, ``log_evidence_ratio``,
