@@ -347,28 +347,6 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         d = self.dim
         return torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
 
-    def fit_covariance(self, X: Tensor) -> tuple[Tensor | None, float]:
-        r"""``(P, log det Sigma)`` of the readings at ``X`` (``n x d``) in the fit:
-        :math:`P = \Sigma^{-1}` (``n x n``) with :math:`\Sigma = K + \sigma_n^2 I` when ``gls``
-        (:math:`K` the residual kernel with the precision of the current :math:`\theta`, else
-        of :math:`\theta_0`), or ``None`` for :math:`\Sigma = \sigma_n^2 I`. The last
-        :meth:`fit`'s own when ``X`` is its data (the same tensor)."""
-        n = X.shape[0]
-        if not self.gls:
-            return None, 2.0 * n * math.log(self.noise)
-        if self._fit_cov is not None and self._fit_cov[0] is X:
-            return self._fit_cov[1], self._fit_cov[2]
-        theta = self.theta
-        if theta is None or theta.shape[0] != self.n_params:
-            theta = self.prior_theta()
-        d = self.dim
-        prec = torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
-        D = X.unsqueeze(-2) - X.unsqueeze(-3)
-        K = self.residual_std**2 * torch.exp(-0.5 * ((D @ prec) * D).sum(-1))
-        L = torch.linalg.cholesky(K + self.noise**2 * torch.eye(n, dtype=DTYPE))
-        P = torch.cholesky_inverse(L)
-        return (P + P.T) / 2, 2.0 * float(torch.log(L.diagonal()).sum())
-
     def _k_res(self, A: Tensor, Bx: Tensor) -> Tensor:
         D = A.unsqueeze(-2) - Bx.unsqueeze(-3)
         q = ((D @ self._res_prec) * D).sum(-1)

@@ -64,6 +64,9 @@ def _element_map(seg, name, energy=1e8):
     import cheetah
 
     el = seg._el[name]
+    # Cheetah caches the map under the id() and version of the element's tensors; a tensor set
+    # by the test may reuse a freed one's id (as AresSegment's own calls, drop the cache)
+    el.__dict__.pop("_cache", None)
     R = el.first_order_transfer_map(torch.tensor(energy, dtype=D), cheetah.Species("electron"))
     return R.detach().numpy()
 
