@@ -151,7 +151,7 @@ def bo_step_times(
         dims: knob counts :math:`d`.
         repeats: timed steps of the fast path per ``(d, n)``.
         stock_repeats: timed steps of the stock and ML-II paths (default ``repeats``; they are
-            10-100x slower).
+            slower per step than the fast path: fewer repeats keep the benchmark short).
         ml2: also time the warm-started ML-II path.
         ml2_max_n: skip ML-II above this ``n`` (its fit is :math:`O(n^3)` per iteration).
         seed: seed of the problem, the design and the noise.
