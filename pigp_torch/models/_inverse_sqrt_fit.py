@@ -32,10 +32,7 @@ class FitTerms:
         theta = self.theta
         if theta is None or theta.shape[0] != self.n_params:
             theta = self.prior_theta()
-        d = self.dim
-        prec = torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
-        D = X.unsqueeze(-2) - X.unsqueeze(-3)
-        K = self.residual_std**2 * torch.exp(-0.5 * ((D @ prec) * D).sum(-1))
+        K = self._k_res(X, X, self.residual_precision(theta))
         L = torch.linalg.cholesky(K + self.noise**2 * torch.eye(n, dtype=DTYPE))
         P = torch.cholesky_inverse(L)
         return (P + P.T) / 2, 2.0 * float(torch.log(L.diagonal()).sum())

@@ -340,16 +340,19 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         self._n = X.shape[0]
         return best[1]
 
-    def residual_precision(self) -> Tensor:
-        r"""Precision of the residual kernel: :math:`\hat\beta B / (2\hat c)`, the Hessian of
-        :math:`-\log(f - f_\infty)` at the fitted optimum, halved (the PI-GP convention)."""
-        theta = self._fitted()
+    def residual_precision(self, theta: Tensor | None = None) -> Tensor:
+        r"""Precision of the residual kernel: :math:`\beta B / (2 c)`, the Hessian of
+        :math:`-\log(f - f_\infty)` at the optimum of ``theta`` (default: the fit), halved (the
+        PI-GP convention)."""
+        theta = self._fitted() if theta is None else theta
         d = self.dim
         return torch.exp(theta[d + 1] - theta[d]) * self.shape(theta) / 2
 
-    def _k_res(self, A: Tensor, Bx: Tensor) -> Tensor:
+    def _k_res(self, A: Tensor, Bx: Tensor, precision: Tensor | None = None) -> Tensor:
+        """Residual kernel between ``A`` and ``Bx`` (precision default: the fit's)."""
+        P = self._res_prec if precision is None else precision
         D = A.unsqueeze(-2) - Bx.unsqueeze(-3)
-        q = ((D @ self._res_prec) * D).sum(-1)
+        q = ((D @ P) * D).sum(-1)
         return self.residual_std**2 * torch.exp(-0.5 * q)
 
     def _residual_gp(self, X: Tensor, Y: Tensor) -> None:
