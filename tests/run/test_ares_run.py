@@ -13,8 +13,8 @@ from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config import ConfigError
 from pigp_torch.loop.run import build_machine, load_config, validate_config
+from pigp_torch.machines.ares_ea.simulation import KNOB_NAMES, KNOB_UNITS, knob_bounds
 from pigp_torch.reporting.dashboard import run_state
-from pigp_torch.simulation.ares import KNOB_NAMES, KNOB_UNITS, knob_bounds
 
 LIMITS = knob_bounds()
 KNOBS = {n: [float(LIMITS[0, i]), float(LIMITS[1, i])] for i, n in enumerate(KNOB_NAMES)}

@@ -68,16 +68,15 @@ from pydantic import (
 
 from pigp_torch._utils import DTYPE, max_step_tensor
 from pigp_torch.loop.config.machines import (
-    AresSimConfig,
     EpicsMachineConfig,
     Flag,
     Integer,
-    MachineConfig,
     Number,
     SimMachineConfig,
     _resolve,
     _Section,
 )
+from pigp_torch.loop.config.sections import MachineConfig
 
 
 class ConfigError(ValueError):
@@ -109,8 +108,8 @@ class RunConfig(_Section):
     r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
 
     Attributes:
-        machine: :class:`SimMachineConfig`, :class:`AresSimConfig` or
-            :class:`EpicsMachineConfig` (by ``kind``).
+        machine: :class:`SimMachineConfig`, :class:`EpicsMachineConfig` or a machine kind's
+            section (``ares-sim``), by ``kind`` (:mod:`~pigp_torch.loop.config.sections`).
         knobs: ``{name: (lower, upper)}`` in knob order.
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
@@ -229,7 +228,7 @@ class RunConfig(_Section):
         m = self.machine
         if isinstance(m, SimMachineConfig) and isinstance(m.knob_calibration, dict):
             _same_knobs("machine.knob_calibration", m.knob_calibration, names)
-        if isinstance(m, (SimMachineConfig, AresSimConfig)):
+        if not isinstance(m, EpicsMachineConfig):  # a simulated machine
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
             for name, value in (m.x_init or {}).items():
