@@ -7,7 +7,8 @@ differentiable in the knobs):
 * **knobs** :math:`x \in \mathbb R^K`: the skew windings (control units, A for SPEAR3), bounds
   the simulator's (±30 A);
 * **observables**: the loss rate :math:`f` (mA/min), and behind it the emittances
-  :math:`\epsilon_x, \epsilon_y` (m);
+  :math:`\epsilon_x` (nm) and :math:`\epsilon_y` (pm), in units where each is a number of order
+  1–100 (a fit weighs them with one noise level);
 * **unknowns** :math:`\theta = (\delta, d, e)`, what a ring's operator does not know:
 
   - :math:`\delta \in \mathbb R^K`: the coupling errors as the knob setting that would cause them
@@ -39,7 +40,9 @@ from pigp_torch.prior.machine_model import MachineModel
 
 #: Observables of the ring's model and their units.
 RING_OBSERVABLES: tuple[str, ...] = ("loss_rate", "eps_x", "eps_y")
-RING_OBSERVABLE_UNITS: tuple[str, ...] = ("mA/min", "m", "m")
+RING_OBSERVABLE_UNITS: tuple[str, ...] = ("mA/min", "nm", "pm")
+#: The simulator's emittances (m) in :data:`RING_OBSERVABLE_UNITS`.
+_EPS_SCALE: tuple[float, float] = (1e9, 1e12)
 #: Centre and half width of the loss-rate map's relative background ``d`` and scale ``e``.
 LOSS_MAP_CENTER: tuple[float, float] = (0.0, 0.0)
 LOSS_MAP_HALF_WIDTH: tuple[float, float] = (0.8, 0.3)
@@ -76,7 +79,8 @@ def ring_machine_model(sim, coupling_half_width: float | Tensor | None = None) -
         out = sim.evaluate(torch.as_tensor(X, dtype=DTYPE) + theta[..., :K])
         d, e = theta[..., K], theta[..., K + 1]
         loss = f_inf * (1 + d) + (1 + e) * (out.loss_rate - f_inf)
-        return torch.stack([loss, out.eps_x, out.eps_y], dim=-1)
+        eps_x, eps_y = out.eps_x * _EPS_SCALE[0], out.eps_y * _EPS_SCALE[1]
+        return torch.stack([loss, eps_x, eps_y], dim=-1)
 
     return MachineModel(
         name=f"ring {sim.name}",
