@@ -14,7 +14,8 @@ layer  units
        (Badger's entry point)
 10     every machine kind: ``machines.<kind>`` (one folder each: ``machines.ares_ea``,
        ``machines.ring``); a kind imports the core, never another kind
-9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard)
+9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard),
+       ``machines.contract`` (the contract tests every machine kind inherits)
 8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
 7      ``testing`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
@@ -22,7 +23,7 @@ layer  units
 4      ``optimizers`` (ask/tell)
 3      ``models`` (GP builders, posteriors), ``data`` (datasets, sampling, run logs and locks,
        lattice decks), ``machines`` (the registry of machine kinds, what a kind brings, the
-       building blocks of a run-file section, the contract every kind passes)
+       building blocks of a run-file section)
 2      ``kernels``, ``prior``, ``surrogate``, ``simulation``
 0      ``_utils`` (dtype and knob tensors, scipy's L-BFGS-B driven directly, multi-start),
        ``_version``
@@ -47,7 +48,7 @@ ROOT = "<root>"
 LAYERS: dict[str, int] = {
     **dict.fromkeys(("cli", ROOT), 12),
     **dict.fromkeys(("commands", "badger_plugins"), 11),
-    **dict.fromkeys(("benchmark", "reporting"), 9),
+    **dict.fromkeys(("benchmark", "reporting", "machines.contract"), 9),
     "loop": 8,
     "testing": 7,
     **dict.fromkeys(("methods", "machine"), 6),
@@ -106,13 +107,15 @@ def _imports(path: Path, name: str, known: set[str]) -> set[str]:
 def _unit(module: str) -> str:
     """``machines.<kind>`` for a module of a kind's folder, else the top-level unit."""
     parts = module.split(".")
+    if module == "pigp_torch.machines.contract":
+        return "machines.contract"
     if len(parts) > 2 and parts[1] == "machines" and (PACKAGE / "machines" / parts[2]).is_dir():
         return f"machines.{parts[2]}"
     return parts[1] if len(parts) > 1 else ROOT
 
 
 def _layer(unit: str) -> int:
-    return KIND_LAYER if unit.startswith("machines.") else LAYERS[unit]
+    return LAYERS[unit] if unit in LAYERS else KIND_LAYER
 
 
 def _graph() -> dict[str, set[str]]:
@@ -157,7 +160,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_every_unit_has_a_layer():
-    units = {_unit(m) for m in _modules() if not _unit(m).startswith("machines.")}
+    units = {_unit(m) for m in _modules() if _unit(m) not in _kinds()}
     assert units - set(LAYERS) == set(), "add the new unit to LAYERS (and the docstring)"
     assert set(LAYERS) - units == set(), "a unit in LAYERS no longer exists"
 
@@ -175,7 +178,8 @@ def test_units_import_only_lower_layers_and_never_the_root():
 
 
 def _kinds() -> set[str]:
-    return {_unit(m) for m in _modules() if _unit(m).startswith("machines.")}
+    folders = (PACKAGE / "machines").iterdir()
+    return {f"machines.{p.name}" for p in folders if (p / "__init__.py").is_file()}
 
 
 def test_each_machine_kind_is_a_folder_and_the_core_never_imports_one():
@@ -191,7 +195,7 @@ def test_each_machine_kind_is_a_folder_and_the_core_never_imports_one():
         a = _unit(module)
         for target in targets:
             b = _unit(target)
-            if b.startswith("machines.") and a != b and a not in ("commands", "cli"):
+            if b in _kinds() and a != b and a not in ("commands", "cli"):
                 if module not in ALIASES:
                     bad.append(f"{module} imports the kind module {target}")
     assert bad == []
@@ -206,7 +210,7 @@ def test_alias_modules_only_re_export_a_kind():
         doc, imports, rest = body[0], body[1:-1], body[-1]
         assert isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant), name
         assert imports and all(isinstance(n, ast.ImportFrom) for n in imports), name
-        assert all(_unit(n.module).startswith("machines.") for n in imports), name
+        assert all(_unit(n.module) in _kinds() for n in imports), name
         assert isinstance(rest, ast.Assign) and rest.targets[0].id == "__all__", name
         exported = {e.value for e in rest.value.elts}
         assert exported == {a.name for n in imports for a in n.names}, name
@@ -322,3 +326,13 @@ def test_the_length_checks_see_a_long_function():
     held = {m for m in _modules() if m.startswith(SHORT_FUNCTIONS)}
     assert {"pigp_torch.loop.core", "pigp_torch.prior.build", "pigp_torch.surrogate.train"} <= held
     assert "pigp_torch.benchmark.protocol" in held
+
+
+def test_a_kinds_modules_are_one_unit_above_the_core():
+    """A module of a kind's folder belongs to that kind (layer 10, above the benchmark and the
+    loop it uses); the registry's modules are a low unit that the methods and the loop use."""
+    assert _unit("pigp_torch.machines.ares_ea.benchmark") == "machines.ares_ea"
+    assert _unit("pigp_torch.machines.ring") == "machines.ring"
+    assert _unit("pigp_torch.machines.kind") == _unit("pigp_torch.machines") == "machines"
+    assert _layer("machines.ring") == KIND_LAYER > _layer("benchmark") > _layer("loop")
+    assert _layer("methods") > _layer("machines") and _layer("commands") > KIND_LAYER

@@ -9,8 +9,9 @@ A *machine kind* is one accelerator family with everything the package needs to 
   are computed by the same code for every kind;
 * ``simulator(**options)``: the simulation behind it (what a simulated machine reads);
 * ``section()``: the pydantic class of its run-file section (``machine: {kind: <run_file_kind>,
-  ...}``), ``check_run(config)`` (the checks of a run file that need the simulation) and
-  ``simulated_machine(config)`` (the machine ``pigp optimize`` runs on);
+  ...}``), ``check_run(config, method)`` (the checks of a run file that need the simulation),
+  ``simulated_machine(config)`` (the machine ``pigp optimize`` runs on) and
+  ``describe(section, machine)`` (that machine in words);
 * ``register_methods(register)``: the methods it adds to :data:`pigp_torch.methods.METHODS`
   (its :attr:`default_method` among them, or a generic one);
 * ``benchmark(**options)``: its benchmark task (a table, one row per method, trial and step).
@@ -18,7 +19,10 @@ A *machine kind* is one accelerator family with everything the package needs to 
 Each kind is a sub-package of :mod:`pigp_torch.machines` whose ``__init__`` defines ``KIND`` (a
 :class:`MachineKind`) and imports nothing heavy: the registry finds every sub-package on first use
 (:func:`pkgutil.iter_modules`, as entry points are found), so a new kind is one new folder. The
-core (methods, loop) reads kinds only through :data:`KINDS`; a kind imports the core.
+core (methods, loop) reads kinds only through :data:`KINDS`; a kind imports the core. As the
+methods' registry and the run-file schema find the kinds while they are imported, a kind's
+``__init__`` imports neither :mod:`pigp_torch.methods` nor :mod:`pigp_torch.loop` (its methods
+import them when called).
 """
 
 from __future__ import annotations
@@ -61,13 +65,28 @@ class MachineKind:
         """The pydantic class of the kind's run-file section (``machine: {kind: ...}``)."""
         raise NotImplementedError(f"machine kind {self.name!r} has no run-file section")
 
-    def check_run(self, config: Any) -> None:
-        """Check a validated run file against the kind (every run file is shown to every kind:
-        a kind refuses its own methods on another machine). Default: nothing to check."""
+    def check_run(self, config: Any, method: Any) -> None:
+        """Check a validated run file (its :class:`~pigp_torch.methods.MethodSpec` ``method``)
+        against the kind; every run file is shown to every kind. Default: a method built for
+        this kind (``method.machine == name``) runs on its run-file section only.
+
+        Raises:
+            ValueError: the first problem (its message names the key).
+        """
+        if method.machine == self.name and config.machine.kind != self.run_file_kind:
+            raise ValueError(
+                f"method.name: {method.name} is a method of the {self.title}; it runs on "
+                f"machine kind: {self.run_file_kind}"
+            )
 
     def simulated_machine(self, config: Any) -> Any:
         """The simulated machine of a run file whose section is the kind's."""
         raise NotImplementedError(f"machine kind {self.name!r} has no simulated machine")
+
+    def describe(self, section: Any, machine: Any) -> str:
+        """The simulated machine of a run file's section in words (the plan of ``pigp optimize
+        --dry-run``: "plan: METHOD on the <this>"). Default: the kind's title."""
+        return f"simulated {self.title}"
 
     def register_methods(self, register: Callable[[Any], Any]) -> None:
         """Add the kind's methods with ``register(MethodSpec(...))``. Default: none."""

@@ -231,7 +231,7 @@ class RunConfig(_Section):
         if not isinstance(m, EpicsMachineConfig):  # a simulated machine
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
-            for name, value in (m.x_init or {}).items():
+            for name, value in (getattr(m, "x_init", None) or {}).items():  # a kind may have none
                 if name not in self.knobs:
                     raise ValueError(f"machine.x_init: {name!r} is not a configured knob")
                 lo, hi = self.knobs[name]

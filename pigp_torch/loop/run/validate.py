@@ -132,7 +132,7 @@ def validate_config(data: Any, *, base_dir: str | Path | None = None, source: st
     try:
         check_method(config)
         for kind in KINDS.values():
-            kind.check_run(config)
+            kind.check_run(config, METHODS[config.method.name])
         if config.prior is not None:
             config.attach_prior(load_prior(config.prior, config.knob_names))
     except ValueError as err:

@@ -56,7 +56,7 @@ class AresKind(MachineKind):
 
         return AresSimConfig
 
-    def check_run(self, config) -> None:
+    def check_run(self, config, method) -> None:
         from pigp_torch.machines.ares_ea.run import check_ares
 
         check_ares(config)
@@ -65,6 +65,15 @@ class AresKind(MachineKind):
         from pigp_torch.machines.ares_ea.run import build_ares_machine
 
         return build_ares_machine(config)
+
+    def describe(self, section, machine) -> str:
+        m = section
+        where = "the shipped trials" if m.trials is None else str(m.trials)
+        return (
+            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
+            f"screen noise {m.noise:g} m, noise seed {m.seed}; objective "
+            f"{getattr(machine, 'objective', '?')})"
+        )
 
     def register_methods(self, register) -> None:
         from pigp_torch.machines.ares_ea.methods import register_ares_methods
