@@ -2,7 +2,7 @@
 as ``transfer_line/__init__.py``, found by the registry in a fresh interpreter (as a folder under
 ``pigp_torch/machines`` is; nothing else of the package is edited), used from Python (the page's
 block asserts the registry, the method, the contract, the prior and a tuned run) and run through
-``pigp optimize`` with the page's run file."""
+``pigp optimize`` with the page's run file (its plan first, ``--dry-run``)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ namespace = {"__name__": "extending_kinds"}
 exec(compile(open(sys.argv[2]).read(), sys.argv[2], "exec"), namespace)
 from pigp_torch.cli import main
 
+assert main(["optimize", "--config", sys.argv[3], "--dry-run"]) == 0
 sys.exit(main(["optimize", "--config", sys.argv[3], "--quiet"]))
 """
 
@@ -49,6 +50,8 @@ def test_a_new_machine_kind_is_one_folder(tmp_path):
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
+    plan = "plan: line-physics on the simulated transfer line: 2 correctors, a doublet, a screen"
+    assert plan in done.stdout
     records = [json.loads(line) for line in (tmp_path / "line.jsonl").read_text().splitlines()]
     evaluations = [r for r in records if r.get("type") == "evaluation"]
     assert len(evaluations) == 10

@@ -28,16 +28,23 @@ def print_plan(setup, records, out) -> None:
             f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
             f"{m.noise:g} {yu}, noise seed {m.seed})"
         )
-    elif m.kind != "epics":  # a machine kind's simulated machine: the kind describes it
-        from pigp_torch.machines import KINDS
-
-        machine = KINDS.by_run_file_kind(m.kind).describe(m, setup.machine)
+    elif m.kind == "ares-sim":
+        where = "the shipped trials" if m.trials is None else str(m.trials)
+        machine = (
+            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
+            f"screen noise {m.noise:g} m, noise seed {m.seed}; objective "
+            f"{getattr(setup.machine, 'objective', '?')})"
+        )
     else:
         machine = f"EPICS (objective PV {c.objective.pv})"
     from pigp_torch.loop import effective_max_step
     from pigp_torch.loop.moves import setpoints_of
 
     now = setpoints_of(setup.machine).tolist()  # setpoints: what a ramp starts from
+    if m.kind not in ("sim", "ares-sim", "epics"):  # another machine kind's simulated machine
+        from pigp_torch.machines import KINDS
+
+        machine = KINDS.by_run_file_kind(m.kind).describe(m, setup.machine)
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)

@@ -66,15 +66,6 @@ class AresKind(MachineKind):
 
         return build_ares_machine(config)
 
-    def describe(self, section, machine) -> str:
-        m = section
-        where = "the shipped trials" if m.trials is None else str(m.trials)
-        return (
-            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
-            f"screen noise {m.noise:g} m, noise seed {m.seed}; objective "
-            f"{getattr(machine, 'objective', '?')})"
-        )
-
     def register_methods(self, register) -> None:
         from pigp_torch.machines.ares_ea.methods import register_ares_methods
 
