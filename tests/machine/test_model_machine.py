@@ -6,28 +6,22 @@ import pytest
 import torch
 
 from pigp_torch.machine import ModelMachine
-from pigp_torch.prior.machine_model import MachineModel
+from tests.prior.test_machine_model import _offset_model
 
 D = torch.float64
 TARGET = torch.tensor([1.0, -2.0], dtype=D)
 
 
-def _model() -> MachineModel:
-    """Two knobs, two observables ``o = x + theta`` (mm), goal the squared distance to TARGET."""
-    return MachineModel(
-        name="toy",
-        knob_names=["a", "b"],
-        knob_units=["A", "A"],
+def _model():
+    """Two knobs, two observables ``o = x + theta`` (mm), goal the squared distance to TARGET
+    (the offset model of the machine-model tests with these parts)."""
+    return _offset_model(
         bounds=torch.tensor([[-5.0, -5.0], [5.0, 5.0]], dtype=D),
         observable_names=["u", "v"],
-        observable_units=["mm", "mm"],
-        unknown_names=["du", "dv"],
-        unknown_units=["mm", "mm"],
         unknown_center=torch.zeros(2, dtype=D),
         unknown_half_width=torch.ones(2, dtype=D),
         observe=lambda X, th: X + th,
         goal=lambda O: (O - TARGET).square().sum(-1),
-        goal_unit="mm^2",
     )
 
 
