@@ -72,3 +72,27 @@ def test_the_online_fit_finds_the_rings_unknowns(ring):
     err_before = float((c - theta_true).abs().max())
     err_after = float((c + h * u - theta_true).abs().max())
     assert err_after < 0.01 * err_before, (err_before, err_after)
+
+
+def test_the_online_fit_and_prior_check_tune_a_ring_through_its_model(ring):
+    """The optimizer of ARES-EA's ``ares-physics`` (the unknowns fitted online, the fitted
+    model's optimum asked in a trust region, the prior check) runs on the ring's model: a ring
+    whose coupling error and loss map it is not told (a ModelMachine of the model at those
+    unknowns), read with noise, gains loss rate within 8 readings."""
+    from pigp_torch.machine import ModelMachine
+    from pigp_torch.optimizers.model_check import CheckedModelOptimizer
+
+    sim, model = ring
+    theta = model.sample_unknowns(1, seed=11)[0]
+    machine = ModelMachine(model, theta, noise=0.01, seed=0, maximize=True)
+    opt = CheckedModelOptimizer.from_machine_model(model, obs_sd=0.01, seed=0, maximize=True)
+    start = float(-model.goal(machine.true_observables(machine.get())))
+    for _ in range(8):
+        y = machine.read()
+        opt.tell(machine.get(), y, observables=machine.last_observables)
+        machine.set(opt.ask())
+    best = float(-model.goal(machine.true_observables(opt.best()[0])))
+    x_model, _ = sim.optimum()  # the model ring's optimum; the machine's lies delta away
+    x_machine = torch.clamp(x_model - theta[: sim.dim], sim.bounds[0], sim.bounds[1])
+    optimum = float(-model.goal(machine.true_observables(x_machine)))
+    assert best > start + 0.5 * (optimum - start), (start, best, optimum)
