@@ -9,7 +9,6 @@ from pigp_torch.machine.base import (
 )
 from pigp_torch.machine.epics import EpicsMachine
 from pigp_torch.machine.errors import MachineError, ReadbackError, ReadError
-from pigp_torch.machine.model_machine import ModelMachine
 from pigp_torch.machine.simulated import SimulatedMachine
 
 __all__ = [
@@ -17,7 +16,6 @@ __all__ = [
     "GuardedMachine",
     "Machine",
     "MachineError",
-    "ModelMachine",
     "ReadError",
     "ReadbackError",
     "SimulatedMachine",

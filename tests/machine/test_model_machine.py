@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pigp_torch.machine import ModelMachine
+from pigp_torch.machine.model_machine import ModelMachine
 from tests.prior.test_machine_model import _offset_model
 
 D = torch.float64

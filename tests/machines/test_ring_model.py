@@ -79,7 +79,7 @@ def test_the_online_fit_and_prior_check_tune_a_ring_through_its_model(ring):
     model's optimum asked in a trust region, the prior check) runs on the ring's model: a ring
     whose coupling error and loss map it is not told (a ModelMachine of the model at those
     unknowns), read with noise, gains loss rate within 8 readings."""
-    from pigp_torch.machine import ModelMachine
+    from pigp_torch.machine.model_machine import ModelMachine
     from pigp_torch.optimizers.model_check import CheckedModelOptimizer
 
     sim, model = ring
