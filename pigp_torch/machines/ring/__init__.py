@@ -49,7 +49,7 @@ class RingKind(MachineKind):
         return ring_machine_model(sim, coupling_half_width)
 
     def section(self) -> type:
-        from pigp_torch.loop.config import SimMachineConfig
+        from pigp_torch.loop.config.machines import SimMachineConfig
 
         return SimMachineConfig
 
