@@ -350,10 +350,19 @@ def _run(args, setup, records, log_lock) -> int:
             out.flush()
     end = log.end_record  # this session's, written or not (never an earlier session's)
     if end is not None and end.get("restored") is False:
-        say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
+        say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)"
+                         + _which_knobs(end))  # fmt: skip
         return EXIT_NOT_RESTORED
     if end is None and log.moved:  # the run ended before its end record: the knobs are unknown
         say(sys.stderr, "pigp optimize: the run ended without an end record after moving the "
                          "knobs: they may NOT be restored (exit status 3)")  # fmt: skip
         return EXIT_NOT_RESTORED
     return code
+
+
+def _which_knobs(end: dict) -> str:
+    """``": at the target: A, B; NOT at the target: C"`` from an end record ("" without)."""
+    at, off = end.get("knobs_at_target"), end.get("knobs_not_at_target")
+    if not isinstance(at, list) or not isinstance(off, list):
+        return ""
+    return f": at the target: {', '.join(at) or 'none'}; NOT at the target: {', '.join(off)}"

@@ -18,7 +18,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils import utc_now as _utc_now
-from pigp_torch.loop.moves import setpoints_of
+from pigp_torch.loop.moves import SETPOINT_TOL, setpoints_of
 from pigp_torch.loop.readings import CONTROL_READS, check_readings, confirm_best
 from pigp_torch.loop.session import Run
 from pigp_torch.loop.signals import classify
@@ -145,6 +145,22 @@ def _restore(run: Run, rows: list[dict], out: Ending) -> None:
         out.final_setpoints = f"unavailable: {type(err).__name__}: {err}"
 
 
+def _knobs_against_target(run: Run, out: Ending) -> dict:
+    """``{"knobs_at_target": [...], "knobs_not_at_target": [...]}``: the knobs whose setpoint
+    read at the end equals the restore target (within ``SETPOINT_TOL`` of the range) and the
+    others; ``{}`` when the setpoints could not be read."""
+    if not isinstance(out.final_setpoints, list):
+        return {}
+    width = (run.bounds[1] - run.bounds[0]).tolist()
+    target = out.target.tolist()
+    at = [abs(sp - t) <= SETPOINT_TOL * w
+          for sp, t, w in zip(out.final_setpoints, target, width, strict=True)]  # fmt: skip
+    return {
+        "knobs_at_target": [n for n, ok in zip(run.names, at, strict=True) if ok],
+        "knobs_not_at_target": [n for n, ok in zip(run.names, at, strict=True) if not ok],
+    }
+
+
 def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     """The end record (a failure to write it is raised only when nothing else failed)."""
     try:
@@ -156,6 +172,7 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
             end.update(restore_attempts=out.attempts_made)
             if out.target is not None:
                 end["restore_target"] = out.target.tolist()
+                end.update(_knobs_against_target(run, out))
             for key, value in (("control_reading", out.control),
                                ("best_confirmation", out.confirmation),
                                ("rejected_best", out.rejected_best)):  # fmt: skip

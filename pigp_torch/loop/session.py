@@ -126,6 +126,7 @@ class Run:
             self.limit,
             attempts=opts.restore_attempts,
             interval=opts.restore_interval,
+            window=opts.restore_timeout,
             readback_tol=opts.readback_tol,
             on_set=self.on_set,
             on_ack=self.on_ack,
