@@ -13,7 +13,9 @@ setpoint written.
 
 ``--resume LOG`` continues a logged run: the log's hash chain is verified (an edited log is
 refused, exit 2, naming the first line that does not match; a torn last line is dropped with one
-warning; a log of an older version without a chain resumes with a warning), the optimizer is
+warning; a log of an older version without a chain resumes with a warning where that version
+could have written it, and its restore target, when more than the step limit from the setpoints
+now, only with ``--accept-restore-target``), the optimizer is
 rebuilt from the logged evaluations (:func:`pigp_torch.data.runlog.replay`), the knobs are compared
 with the initial knobs of the run's first start (the restore target) and the last commanded
 setting, and the run goes on up to the budget (which may be raised in the run file; nothing else
@@ -42,6 +44,7 @@ from pigp_torch.commands.optimize_log import (
     _existing_log,
     _locks,
     _read_resumed,
+    unverified_target,
 )
 from pigp_torch.commands.optimize_output import (
     print_plan,
@@ -82,8 +85,10 @@ EXIT_HELP = """rules:
             logged before it is written; each record carries a sha256 chained to the
             previous one: --resume and pigp report refuse a log edited anywhere (exit 2,
             naming the first line that does not match); a last line cut short by a crash is
-            dropped with one warning; a log of an older version (no chain) still resumes,
-            with a warning that it cannot be verified
+            dropped with one warning; a log of an older version (no chain) resumes, with a
+            warning that it cannot be verified, only where that version could have written
+            every record (else exit 2), and only with --accept-restore-target when its
+            restore target is more than max_step from the setpoints now (else shown, exit 2)
   log disk  a log write that fails (disk full, I/O error) stops the run: the knobs are
             restored, one line says why, the summary is printed; a log whose header could
             not be written is removed (nothing moved)
@@ -144,6 +149,13 @@ def register(sub, bench) -> None:
         action="store_true",
         help="validate, connect and print the plan; move nothing, write nothing (an existing "
         "run log is named with what a run would do, not refused)",
+    )
+    p.add_argument(
+        "--accept-restore-target",
+        action="store_true",
+        help="with --resume of a log without a hash chain (an older version's): restore to its "
+        "logged initial knobs even when they are more than max_step from the setpoints now "
+        "(they cannot be verified; without this flag such a resume is refused, exit 2)",
     )
     p.add_argument("--quiet", action="store_true", help="no line per evaluation")
     p.add_argument(
@@ -253,6 +265,10 @@ def _optimize(args) -> int:
                 say(sys.stderr, f"pigp optimize: could not connect to the machine: {err}")
                 return EXIT_STOPPED
             try:
+                refusal = None if records is None else unverified_target(setup, records)
+                if refusal and not args.dry_run and not args.accept_restore_target:
+                    print_resume_state(setup, records, out)  # the target shown, then refused
+                    raise ValueError(refusal)
                 log_lock = None if args.dry_run else taken[0]
                 return _run(args, setup, records, log_lock)
             finally:

@@ -146,18 +146,24 @@ def _restore(run: Run, rows: list[dict], out: Ending) -> None:
 
 
 def _knobs_against_target(run: Run, out: Ending) -> dict:
-    """``{"knobs_at_target": [...], "knobs_not_at_target": [...]}``: the knobs whose setpoint
-    read at the end equals the restore target (within ``SETPOINT_TOL`` of the range) and the
-    others; ``{}`` when the setpoints could not be read."""
-    if not isinstance(out.final_setpoints, list):
+    """``{"knobs_at_target": [...], "knobs_not_at_target": [...]}``: a knob is at the restore
+    target when its setpoint read at the end equals it (within ``SETPOINT_TOL`` of the range) and
+    its readback is within ``readback_tol`` of the range of it (or of the readback found at the
+    start, for a target that is the setpoints found); ``{}`` when they could not be read."""
+    sp, rb = out.final_setpoints, out.final_knobs
+    if not isinstance(sp, list) or not isinstance(rb, list):
         return {}
-    width = (run.bounds[1] - run.bounds[0]).tolist()
-    target = out.target.tolist()
-    at = [abs(sp - t) <= SETPOINT_TOL * w
-          for sp, t, w in zip(out.final_setpoints, target, width, strict=True)]  # fmt: skip
+    width = run.bounds[1] - run.bounds[0]
+    target = out.target
+    sp, rb = torch.tensor(sp, dtype=DTYPE), torch.tensor(rb, dtype=DTYPE)
+    at = (sp - target).abs() <= SETPOINT_TOL * width
+    near = (rb - target).abs() <= run.opts.readback_tol * width
+    if run.rb_found is not None and torch.equal(target, run.x_found):
+        near |= (rb - run.rb_found).abs() <= run.opts.readback_tol * width
+    ok = (at & near).tolist()
     return {
-        "knobs_at_target": [n for n, ok in zip(run.names, at, strict=True) if ok],
-        "knobs_not_at_target": [n for n, ok in zip(run.names, at, strict=True) if not ok],
+        "knobs_at_target": [n for n, k in zip(run.names, ok, strict=True) if k],
+        "knobs_not_at_target": [n for n, k in zip(run.names, ok, strict=True) if not k],
     }
 
 

@@ -22,6 +22,8 @@ import pigp_torch.data.runlog.writer as writer_module
 import pigp_torch.loop.run as run_module
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
+from pigp_torch.data.runlog.legacy import LEGACY_CONFIG, LEGACY_FIELDS
+from pigp_torch.loop.config.schema import config_digest
 from pigp_torch.machine import SimulatedMachine
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
@@ -144,7 +146,7 @@ def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, 
 
     monkeypatch.setattr(SimulatedMachine, "get", get)
     monkeypatch.setattr(writer_module, "os", DiskFull(12, on_full=freeze))
-    config = write_config(tmp_path, budget=40, restore_attempts=2)
+    config = write_config(tmp_path, budget=40, restore_attempts=2, restore_timeout=0.0)
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 3
     captured = capsys.readouterr()
     assert "the knobs were NOT restored (exit status 3)" in captured.err
@@ -354,18 +356,37 @@ def test_a_torn_last_line_resumes_with_one_plain_warning(tmp_path):
     assert records.n_evaluations == 9 and records.verified and records.torn_line is None
 
 
-def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
-    """A version-2 log (no hashes, as the previous version wrote): it resumes, with one warning
-    that it cannot be verified, and stays unchained."""
-    log, more = finished_run(tmp_path)
+def downgrade(log: Path, *, as_written: bool, change=None) -> None:
+    """The log as version 2: every hash removed; ``as_written``: also every field and run-file
+    option version 2 never wrote (the log as that version would have written it); ``change``
+    edits the first start record."""
     lines = []
     for line in log.read_text().splitlines():
         record = json.loads(line)
         record.pop("hash")
         if record["type"] == "header":
             record["version"] = 2
+        if as_written and record["type"] != "notice":
+            record = {k: v for k, v in record.items() if k in LEGACY_FIELDS[record["type"]]}
+            if record["type"] == "header":
+                config = record["config"]
+                kind = f"machine:{config['machine']['kind']}"
+                config["machine"] = {k: v for k, v in config["machine"].items()
+                                     if k in LEGACY_CONFIG[kind]}  # fmt: skip
+                record["config"] = {k: v for k, v in config.items() if k in LEGACY_CONFIG[""]}
+                record["config_sha256"] = config_digest(record["config"])
+        if change is not None and record["type"] == "start":
+            change(record)
+            change = None
         lines.append(json.dumps(record, separators=(",", ":")))
     log.write_text("\n".join(lines) + "\n")
+
+
+def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
+    """A version-2 log (no hashes, only what version 2 wrote): it resumes, with one warning that
+    it cannot be verified, and stays unchained."""
+    log, more = finished_run(tmp_path)
+    downgrade(log, as_written=True)
     capsys.readouterr()
     assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 0
     err = capsys.readouterr().err
@@ -373,6 +394,54 @@ def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
     records = read_log(log, warn=False)
     assert records.n_evaluations == 9 and not records.chained
     assert all("hash" not in r for r in records.evaluations)
+
+
+def test_a_downgraded_log_is_refused(tmp_path, capsys):
+    """A current log with its version set to 2 and every hash deleted (the chain switched off):
+    its header stores options version 2 did not have, so --resume and pigp report refuse it
+    (exit 2, naming line 1 and the options)."""
+    log, more = finished_run(tmp_path)
+    downgrade(log, as_written=False)
+    capsys.readouterr()
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "run.jsonl:1: the log claims run-log version 2 (no hash chain) but" in err
+    assert "restore_timeout" in err and "refused" in err
+    assert cli.main(["report", str(log)]) == 2
+    assert "claims run-log version 2" in capsys.readouterr().err
+
+
+def test_a_version_3_log_without_its_hashes_is_refused(tmp_path, capsys):
+    """A version-3 log whose hashes were all deleted cannot be resumed or reported."""
+    log, more = finished_run(tmp_path)
+    text = "".join(
+        json.dumps({k: v for k, v in json.loads(ln).items() if k != "hash"}) + "\n"
+        for ln in log.read_text().splitlines()
+    )
+    log.write_text(text)
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    assert "run.jsonl:1: the record has no 'hash'" in capsys.readouterr().err
+    assert cli.main(["report", str(log)]) == 2
+
+
+def test_an_old_log_whose_restore_target_is_far_needs_confirmation(tmp_path, capsys):
+    """A version-2 log whose initial knobs are more than max_step from the setpoints now: the
+    target is shown and the resume refused (exit 2, the log untouched); with
+    --accept-restore-target it resumes and restores there."""
+    log, more = finished_run(tmp_path)
+    far = [0.009, -0.009]  # the knobs stand at the start, near 0: > max_step (0.2 * 0.01) away
+    downgrade(log, as_written=True, change=lambda r: r.update(initial_knobs=far))
+    before = log.read_text()
+    capsys.readouterr()
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "the initial knobs of the first start (the restore target)" in captured.out
+    assert "0.009" in captured.out and "--accept-restore-target" in captured.err
+    assert "cannot be verified and is more than max_step" in captured.err
+    assert log.read_text() == before
+    args = ["optimize", "--resume", str(log), "--config", more, "--quiet"]
+    assert cli.main([*args, "--accept-restore-target"]) == 0
+    assert read_log(log, warn=False).last_end["final_knobs"] == far
 
 
 # -------------------------------------------------------------------------- run files

@@ -36,6 +36,8 @@ READABLE_VERSIONS = (1, 2, 3)
 CHAINED_VERSION = 3
 #: Name of the chain field of every record (version 3).
 HASH_KEY = "hash"
+#: Field of a record appended by this version to an older version's log (no chain).
+APPENDED_KEY = "appended_by_version"
 RECORD_TYPES = ("header", "start", "evaluation", "end", "intent", "discarded", "notice")
 END_STATUSES = ("completed", "interrupted", "aborted", "failed")
 
