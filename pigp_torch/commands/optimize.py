@@ -27,8 +27,9 @@ is named, with what a run would do, instead of being refused.
 How the run ended is taken from the end record the loop handed to the run log
 (:attr:`pigp_torch.data.runlog.RunLog.end_record`), written or not: a full log disk stops the run
 (:class:`~pigp_torch.data.runlog.LogWriteError`, the knobs restored by the loop, one line, the
-summary) and never hides that the knobs were not restored (exit 3). Python warnings are printed
-as one plain line each while the command runs.
+summary) and never hides that the knobs were not restored (exit 3). Python warnings, and
+caproto's log records (a reconnection's traceback), are printed as one plain line each while the
+command runs.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from pigp_torch.commands.optimize_log import (
     unverified_target,
 )
 from pigp_torch.commands.optimize_output import (
+    caproto_one_line,
     print_plan,
     print_resume_state,
     print_summary,
@@ -195,7 +197,7 @@ def _plain_warnings():
 
 
 def cmd_optimize(args) -> int:
-    with _plain_warnings():
+    with _plain_warnings(), caproto_one_line():
         return _optimize(args)
 
 

@@ -234,16 +234,17 @@ def averaged_parts(machine) -> list | None:
 def _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors) -> list[str]:
     """Ramp every knob not at its ``target`` setpoint on its own (the others held where the
     machine holds them), so that a knob the machine refuses does not stop the others; returns
-    one line per knob that failed (named where the machine names its knobs)."""
+    one line per knob that failed (named where the machine names its knobs). Setpoints that
+    cannot be read stop it (raised: no knob can be moved then)."""
     names = list(getattr(machine, "knob_names", None) or [])
     width = bounds[1] - bounds[0]
     failures = []
     for i in range(target.numel()):
         name = names[i] if i < len(names) else f"knob {i}"
+        goal = setpoints_of(machine).clone()  # unreadable setpoints: no knob can go (raised)
+        if abs(float(goal[i] - target[i])) <= SETPOINT_TOL * float(width[i]):
+            continue
         try:
-            goal = setpoints_of(machine).clone()
-            if abs(float(goal[i] - target[i])) <= SETPOINT_TOL * float(width[i]):
-                continue
             goal[i] = target[i]
             move(machine, goal, bounds, limit, on_set=on_set, on_ack=on_ack,
                  readback_errors=readback_errors)  # fmt: skip
@@ -264,7 +265,10 @@ def _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback
         return
     except Exception as err:  # every knob on its own: one refusal must not stop the others
         first = f"{type(err).__name__}: {err}"
-    failed = _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors)
+    try:
+        failed = _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors)
+    except Exception as err:
+        raise MachineError(f"{first}; then knob by knob: {type(err).__name__}: {err}") from err
     if failed:
         raise MachineError(f"{first}; then knob by knob: " + "; ".join(failed))
 

@@ -145,3 +145,47 @@ def test_a_stall_shorter_than_restore_timeout_ends_restored(
     assert torch.equal(results["long_sp"], start)
     assert results["short"] == 3
     assert not torch.equal(results["short_sp"], start)
+
+
+@pytest.mark.slow  # an IOC of its own, killed and restarted: ~45 s on a busy host
+def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(
+    tmp_path, capsys, with_optimize
+):
+    """The IOC is killed after 6 puts and restarted on its port 3 s later (its knobs at their
+    power-on zeros): the run aborts, the restore retries through the restart (restore_timeout
+    30 s) and puts the knobs exactly back at the start (exit 1); caproto's reconnection records
+    are one line each (no traceback in stderr)."""
+    from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.testing.ioc import start_sim_ioc
+
+    from .conftest import Probe
+
+    ring = Spear3Coupling(1)
+    start = start_of(ring)
+    with start_sim_ioc(1, update_period=0.05) as own:
+        probe = Probe()
+        probe.write_many(own.setpoint_pvs[:2], start)
+        box = {}
+
+        def restart() -> None:
+            own.kill()
+            time.sleep(3.0)
+            box["ioc"] = start_sim_ioc(1, port=own.port, update_period=0.05,
+                                       set_client_env=False)  # fmt: skip
+            box["handle"] = box["ioc"].__enter__()
+
+        watcher = after_puts(own, 6, restart)
+        config = write_config(tmp_path, own, ring, budget=30, restore_timeout=30.0)
+        try:
+            code = cli.main(["optimize", "--config", config, "--quiet"])
+            watcher.join(timeout=60.0)
+            now = probe.wait_for(own.setpoint_pvs[:2], start, 5.0)
+        finally:
+            probe.close()
+            if "ioc" in box:
+                box["ioc"].__exit__(None, None, None)
+    captured = capsys.readouterr()
+    assert code == 1, captured.err
+    assert torch.equal(now, start)
+    assert "knobs restored to initial" in captured.out
+    assert "Traceback" not in captured.err
