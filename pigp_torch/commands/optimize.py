@@ -101,7 +101,7 @@ exit status:
   0    completed; the knobs restored (or set to the best point with restore: best)
   1    stopped by a safety rule, a machine error, a failed run-log write or another error;
        knobs restored (also: a PV that does not connect, or a run log that cannot be
-       started; nothing moved)
+       started — a full disk, a read-only log folder; nothing moved)
   2    invalid input (run file, a folder or unreadable file given as one, an existing run
        log, a run log that fails its hash chain, arguments); nothing moved
   3    the knobs were NOT restored (whatever ended the run, a full log disk included): the
@@ -222,7 +222,12 @@ def _optimize(args) -> int:
         log_path = Path(args.resume)
     else:
         config = load_config(args.config)
-        _check_log_folder(config.log)
+        try:
+            _check_log_folder(config.log)
+        except PermissionError as err:  # a read-only folder: exit 1, as a full disk
+            say(sys.stderr, f"pigp optimize: could not start the run: {err.strerror}; nothing "
+                             "was moved")  # fmt: skip
+            return EXIT_STOPPED
         log_path = config.log
     locks = _locks(config, log_path)
     try:

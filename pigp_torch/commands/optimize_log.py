@@ -20,7 +20,14 @@ def _locks(config, log_path: Path):
 
 
 def _check_log_folder(path: Path) -> None:
-    """The run log's folder is (or can be made) a writable folder."""
+    """The run log's folder is (or can be made) a writable folder.
+
+    Raises:
+        ValueError: the path is no place for a log (a file where its folder should be, a
+            folder given as the log): invalid input.
+        PermissionError: the folder is not writable (the log cannot be started, as on a full
+            disk).
+    """
     import os
 
     folder = path.parent
@@ -29,7 +36,11 @@ def _check_log_folder(path: Path) -> None:
     if not folder.is_dir():
         raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
+        import errno
+
+        raise PermissionError(  # like a full disk: the log cannot be started (exit 1)
+            errno.EACCES, f"the run log {path} cannot be created: {folder} is not writable"
+        )
     if path.is_dir():
         raise ValueError(f"the run log {path} is a folder; give a file name")
 

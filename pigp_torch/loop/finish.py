@@ -168,7 +168,9 @@ def _knobs_against_target(run: Run, out: Ending) -> dict:
 
 
 def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
-    """The end record (a failure to write it is raised only when nothing else failed)."""
+    """The end record (a failure to write it is raised only when nothing else failed, and
+    warned of only when no earlier write failed: that failure is reported already)."""
+    known = getattr(run.log, "write_error", None)
     try:
         end = {"restored_to": out.restored_to, "final_knobs": out.final_knobs}
         end.update(n_evaluations=len(rows), best=out.best)
@@ -194,8 +196,8 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     except Exception as err:
         if out.error is None and out.restore_error is None:
             raise
-        # stack: here, end_run, optimize, optimize's caller
-        warnings.warn(f"could not write the end record to the run log: {err!r}", stacklevel=4)
+        if known is None:  # stack: here, end_run, optimize, optimize's caller
+            warnings.warn(f"could not write the end record to the run log: {err!r}", stacklevel=4)
     finally:
         if run.own_log:
             run.log.close()

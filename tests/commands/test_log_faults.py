@@ -120,6 +120,7 @@ def test_a_full_disk_mid_run_restores_the_knobs_and_prints_the_summary(
     captured = capsys.readouterr()
     assert "pigp optimize: run stopped: could not write to the run log" in captured.err
     assert "No space left on device" in captured.err and "Traceback" not in captured.err
+    assert len(captured.err.splitlines()) == 1  # the rule: one line (no repeats per record)
     assert "status: failed (LogWriteError" in captured.out
     assert "knobs restored to initial" in captured.out
     assert "a write failed: No space left on device; the end record is NOT in it" in captured.out
@@ -129,6 +130,39 @@ def test_a_full_disk_mid_run_restores_the_knobs_and_prints_the_summary(
     assert len((tmp_path / "run.jsonl").read_text().splitlines()) == 12
     assert log.last_end is None and 0 < log.n_evaluations < 40
     assert not (tmp_path / "run.jsonl.lock").exists()
+
+
+def test_a_read_only_log_folder_exits_1_like_a_full_disk(tmp_path, capsys, monkeypatch):
+    """A log folder that cannot be written: exit 1 (the log cannot be started, as on a full
+    disk), one line, nothing moved and no log."""
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if str(p) == str(tmp_path) else
+                        real(p, mode))  # fmt: skip
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        f"pigp optimize: could not start the run: the run log {tmp_path / 'run.jsonl'} cannot be "
+        f"created: {tmp_path} is not writable; nothing was moved"
+    ]
+    assert not (tmp_path / "run.jsonl").exists()
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_a_non_finite_max_step_is_one_line(tmp_path, capsys, value):
+    """max_step NaN or infinite (YAML .nan / .inf, or 1e400 in JSON): exit 2, one line."""
+    path = Path(write_config(tmp_path))
+    path.write_text(path.read_text().replace("max_step: 0.1", f"max_step: {value}"))
+    assert cli.main(["optimize", "--config", str(path)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "is not a step limit: give a finite fraction" in lines[0]
+    json_path = tmp_path / "run.json"
+    json_path.write_text(
+        json.dumps(yaml.safe_load(path.read_text().replace(f"max_step: {value}", "max_step: 1")))
+        .replace('"max_step": 1', '"max_step": 1e400')
+    )  # fmt: skip
+    assert cli.main(["optimize", "--config", str(json_path)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "max_step: inf is not a step limit" in lines[0]
 
 
 def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, machines):

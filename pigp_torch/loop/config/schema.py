@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -181,6 +182,11 @@ class RunConfig(_Section):
             raise ValueError(
                 f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
                 "the word unlimited (no step limit)"
+            )
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(
+                f"{value} is not a step limit: give a finite fraction of each knob's half-range "
+                "(e.g. 0.1), or write unlimited to run without a step limit"
             )
         return value
 
