@@ -254,7 +254,8 @@ def _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors) 
 
 
 def _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback_errors):
-    """One ramp of every knob together; when it fails, :func:`_ramp_each`.
+    """One ramp of every knob together; when it fails, :func:`_ramp_each`. Returns ``None``, or
+    the joint ramp's error when the knobs then went one by one.
 
     Raises:
         MachineError: a knob could not be ramped on its own either (every one named).
@@ -262,7 +263,7 @@ def _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback
     try:
         move(machine, target, bounds, limit, on_set=on_set, on_ack=on_ack,
              readback_errors=readback_errors)  # fmt: skip
-        return
+        return None
     except Exception as err:  # every knob on its own: one refusal must not stop the others
         first = f"{type(err).__name__}: {err}"
     try:
@@ -271,6 +272,7 @@ def _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback
         raise MachineError(f"{first}; then knob by knob: {type(err).__name__}: {err}") from err
     if failed:
         raise MachineError(f"{first}; then knob by knob: " + "; ".join(failed))
+    return f"{first} (then ramped knob by knob)"
 
 
 def restore_knobs(
@@ -307,7 +309,11 @@ def restore_knobs(
         made += 1
         readback_errors: list[str] = []
         try:
-            _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback_errors)
+            joint = _ramp_all_then_each(
+                machine, target, bounds, limit, on_set, on_ack, readback_errors
+            )
+            if joint is not None:  # the end record says the joint ramp failed
+                errors.append(joint)
             verify_readback(machine, target, bounds, readback_tol, reference)
             return None, made, errors
         except KeyboardInterrupt as err:  # a second signal: abandon the restore
