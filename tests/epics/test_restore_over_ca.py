@@ -18,20 +18,10 @@ from pigp_torch.data.runlog import read_log
 from pigp_torch.machine.epics import EpicsMachine
 from pigp_torch.machine.errors import PutRefused
 
-from .ca_runs import KNOBS, start_of, write_config
+from .ca_runs import KNOBS, private_locks, start_of, with_optimize, write_config  # noqa: F401
 from .conftest import FAST
 
-
-@pytest.fixture(autouse=True)
-def private_locks(tmp_path, monkeypatch):
-    """Machine locks in this test's folder (not the host's shared one)."""
-    monkeypatch.setenv("PIGP_LOCK_DIR", str(tmp_path / "locks"))
-
-
-@pytest.fixture
-def with_optimize(monkeypatch):
-    modules = tuple(dict.fromkeys((*cli.COMMAND_MODULES, "optimize")))
-    monkeypatch.setattr(cli, "COMMAND_MODULES", modules)
+pytestmark = pytest.mark.usefixtures("private_locks", "with_optimize")  # from ca_runs
 
 
 def after_puts(ioc, n: int, action, timeout: float = 60.0) -> threading.Thread:
@@ -52,7 +42,7 @@ def after_puts(ioc, n: int, action, timeout: float = 60.0) -> threading.Thread:
 
 
 def test_a_refused_put_on_one_knob_leaves_every_other_knob_at_its_target(
-    ioc, probe, ring, tmp_path, capsys, with_optimize
+    ioc, probe, ring, tmp_path, capsys
 ):
     """After 4 puts the IOC narrows knob 1's control limits to +-1 A, below its initial 3 A:
     its puts are refused. Exit 3; knob 2 ends exactly at its initial setpoint; the refusal is
@@ -122,9 +112,7 @@ def test_a_readback_offset_past_a_bound_clips_and_the_ioc_lives(ioc, probe, ring
     assert ioc.alive()
 
 
-def test_a_stall_shorter_than_restore_timeout_ends_restored(
-    ioc, probe, ring, tmp_path, capsys, with_optimize
-):
+def test_a_stall_shorter_than_restore_timeout_ends_restored(ioc, probe, ring, tmp_path, capsys):
     """After 4 puts the IOC stalls every put for 3 s (each then refused: an IOC restarting)
     and the run aborts; with restore_timeout 8 s the restore retries through the stall and sets
     the knobs exactly back (exit 1); with restore_timeout 0 and one attempt it ends in exit 3."""
@@ -148,9 +136,7 @@ def test_a_stall_shorter_than_restore_timeout_ends_restored(
 
 
 @pytest.mark.slow  # an IOC of its own, killed and restarted: ~45 s on a busy host
-def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(
-    tmp_path, capsys, with_optimize
-):
+def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(tmp_path, capsys):
     """The IOC is killed after 6 puts and restarted on its port 3 s later (its knobs at their
     power-on zeros): the run aborts, the restore retries through the restart (restore_timeout
     30 s) and puts the knobs exactly back at the start (exit 1); caproto's reconnection records
