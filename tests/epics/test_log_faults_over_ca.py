@@ -72,6 +72,7 @@ def test_a_full_disk_mid_run_restores_the_ioc_exactly(
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "pigp optimize: run stopped: could not write to the run log" in captured.err
+    assert len(captured.err.splitlines()) == 1  # one line, not one per record refused
     assert "knobs restored to initial" in captured.out and "status: failed" in captured.out
     assert torch.equal(setpoints(ioc, probe), start)
     monkeypatch.setattr(writer_module, "os", os)
