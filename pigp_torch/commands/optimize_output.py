@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 from pathlib import Path
 
 from pigp_torch.loop.config.schema import logged_units as log_units
@@ -221,3 +222,41 @@ def print_resume_state(setup, records, out) -> None:
         at = max(abs(a - b) for a, b in zip(now, last, strict=True))
         where = "at" if at <= 1e-12 else f"{at:.3g} (largest knob difference) from"
         say(out, f"  the knobs stand {where} the last commanded setting ({intent['purpose']})")
+
+
+#: Longest caproto log line printed (characters; a longer message is cut, with "...").
+CAPROTO_LINE_CHARS = 300
+
+
+@contextlib.contextmanager
+def caproto_one_line(stream=None):
+    """caproto's log records (WARNING and above) as one line each on ``stream`` (default: the
+    ``sys.stderr`` of the moment) while the block runs, instead of Python's last-resort handler
+    with full tracebacks (up to 38 lines for one reconnection): ``caproto <level>: <message>
+    (<exception type>: <exception>)``, cut to :data:`CAPROTO_LINE_CHARS`. Nothing is silenced;
+    the logger's own settings are put back afterwards."""
+    import logging
+
+    class OneLine(logging.Formatter):
+        def format(self, record):
+            text = " ".join(record.getMessage().split())
+            if record.exc_info and record.exc_info[1] is not None:
+                err = record.exc_info[1]
+                text += f" ({type(err).__name__}: {' '.join(str(err).split())})"
+            line = f"caproto {record.levelname.lower()}: {text}"
+            if len(line) > CAPROTO_LINE_CHARS:
+                line = line[: CAPROTO_LINE_CHARS - 3] + "..."
+            return line
+
+    logger = logging.getLogger("caproto")
+    handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(OneLine())
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate

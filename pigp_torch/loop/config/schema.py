@@ -21,6 +21,7 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
                                   # or the word unlimited (no step limit, deliberately)
     log: runs/sim.jsonl           # the run log (JSON lines)
     restore: initial              # or best (set the best observed point at the end)
+    restore_timeout: 30           # s the restore keeps trying (a stall, an IOC restart)
     read_retries: 2
     objective_floor: null         # abort when a reading falls below this
     objective_unit: mA/min        # units printed and drawn with the numbers (these defaults)
@@ -54,6 +55,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -133,6 +135,9 @@ class RunConfig(_Section):
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
+        restore_timeout: the restore's window, seconds (default 30, at most 3600): attempts go
+            on until ``restore_attempts`` were made and this long has passed since the first, so
+            a network stall or an IOC restart shorter than it still ends restored.
         lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
             ``<tmp>/pigp-locks``; see :mod:`pigp_torch.data.runlock`).
         objective_unit: unit of the objective's readings, printed and drawn with every number
@@ -157,6 +162,7 @@ class RunConfig(_Section):
     readback_tolerance: Number = Field(1e-3, ge=0.0)
     restore_attempts: Integer = Field(3, ge=1, le=100)
     restore_interval: Number = Field(1.0, ge=0.0)
+    restore_timeout: Number = Field(30.0, ge=0.0, le=3600.0)
     lock_dir: Path | None = None
     objective_unit: str = Field("mA/min", min_length=1)
     knob_unit: str = Field("A", min_length=1)
@@ -175,6 +181,11 @@ class RunConfig(_Section):
             raise ValueError(
                 f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
                 "the word unlimited (no step limit)"
+            )
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(
+                f"{value} is not a step limit: give a finite fraction of each knob's half-range "
+                "(e.g. 0.1), or write unlimited to run without a step limit"
             )
         return value
 
@@ -306,6 +317,8 @@ class RunConfig(_Section):
             f"max_step: {self.max_step}",
             f"restore: {self.restore}; objective floor: {floor}; read retries: "
             f"{self.read_retries}; readback tolerance: {self.readback_tolerance:g} of the range",
+            f"restore window: {self.restore_timeout:g} s ({self.restore_attempts} attempt(s) "
+            f"at least, {self.restore_interval:g} s apart)",
         ]
 
     def get_prior(self):

@@ -272,6 +272,7 @@ class RunSetup:
             readback_tol=c.readback_tolerance,
             restore_attempts=c.restore_attempts,
             restore_interval=c.restore_interval,
+            restore_timeout=c.restore_timeout,
             noise=self.stated_noise(),
             objective_range=c.objective_range,
         )
