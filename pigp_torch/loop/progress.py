@@ -29,14 +29,23 @@ _PRIOR_REJECTED = "physics prior rejected after "
 
 
 def notice_text(message: str) -> str:
-    """An optimizer's notice as the operator reads it. The prior check's rejection is the method
-    working as designed (the readings disagree with the physics prior, so the model relaxes it
-    stage by stage), not a fault, and says so."""
+    """An optimizer's notice as the operator reads it.
+
+    The prior check's rejection (``pigp-physics``) says in words what it means: the readings
+    do not fit the physics form with the prior's peak (its misfit test, or a relaxed model with
+    more evidence), because the machine is not the model ring the prior was built from; the
+    method then fits the named parts of the peak (its scale and background, then its
+    eigen-scales and a wider centre) from the readings instead of taking them from the prior,
+    and goes on. That is the method adapting as designed, not a fault of the machine or the run,
+    and expected whenever the machine differs from the model (as in ``pigp demo``). Other notices
+    pass unchanged."""
     if message.startswith(_PRIOR_REJECTED):
         rest = message[len(_PRIOR_REJECTED) :]
         return (
-            "prior check (the method working as designed): the readings disagree with the "
-            f"physics prior after {rest}"
+            "prior check: the readings disagree with the physics prior after "
+            f"{rest}. Meaning: this machine differs from the model ring the prior was built "
+            "from, so the method now fits those parts of the peak from the readings; expected "
+            "when the machine is not the model (as in pigp demo), harmless, the run goes on"
         )
     return message
 

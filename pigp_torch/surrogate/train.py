@@ -6,6 +6,7 @@ import copy
 import math
 import time
 import warnings
+from collections.abc import Callable
 
 import torch
 
@@ -128,6 +129,7 @@ def train_surrogate(
     dtype: torch.dtype = torch.float32,
     num_threads: int | None = TRAIN_DEFAULTS["num_threads"],
     progress: bool = True,
+    on_epoch: Callable[[dict], None] | None = None,
 ) -> tuple[SurrogateMLP, dict]:
     r"""Fit a :class:`SurrogateMLP` to loss-rate samples (validation split, early stopping).
 
@@ -165,6 +167,10 @@ def train_surrogate(
         num_threads: CPU threads for the fit (restored afterwards); ``None`` keeps torch's
             setting (a network this small gains nothing from intra-op parallelism).
         progress: show a tqdm progress bar.
+        on_epoch: called after every epoch with ``{"epoch", "max_epochs", "train_loss",
+            "val_loss", "best_val_loss", "best_epoch", "elapsed_s"}`` (losses of the normalized
+            target, seconds since the first epoch began); e.g. a printer of plain progress lines
+            (``pigp demo``'s worker processes, where a bar would garble). Changes no number.
 
     Returns:
         ``(model, report)``: the model in ``float64`` eval mode on CPU, and a dict with the
@@ -210,6 +216,7 @@ def _train(
     dtype,
     num_threads,
     progress,
+    on_epoch,
 ) -> tuple[SurrogateMLP, dict]:
     x, y, f_inf, b = _unpack(data, f_inf, bounds)
     if target not in TARGETS:
@@ -235,7 +242,9 @@ def _train(
         batch_size=batch_size, lr=lr, lr_min_factor=lr_min_factor, weight_decay=weight_decay,
         max_epochs=max_epochs, patience=patience, time_limit=time_limit,
     )  # fmt: skip
-    fit = _fit(model, put(i_tr), put(i_val), seed=seed, progress=progress, **schedule)
+    fit = _fit(
+        model, put(i_tr), put(i_val), seed=seed, progress=progress, on_epoch=on_epoch, **schedule
+    )
     model.load_state_dict(fit.pop("best_state"))
     model = model.to(device="cpu", dtype=torch.float64).eval()
     with torch.no_grad():  # exact float64 values (training in float32 rounded the buffers)
@@ -306,6 +315,7 @@ def _fit(
     *,
     seed,
     progress,
+    on_epoch,
     batch_size,
     lr,
     lr_min_factor,
@@ -356,6 +366,10 @@ def _fit(
         if bar is not None:
             bar.update(1)
             bar.set_postfix(train=f"{train_loss:.2e}", val=f"{val:.2e}", best=f"{best_val:.2e}")
+        if on_epoch is not None:
+            on_epoch({"epoch": epoch, "max_epochs": max_epochs, "train_loss": train_loss,
+                      "val_loss": val, "best_val_loss": best_val, "best_epoch": best_epoch,
+                      "elapsed_s": time.perf_counter() - t0})  # fmt: skip
         # No early stop in the first half of the cosine schedule: at the high learning rate the
         # validation loss is noisy and a plateau there is not convergence.
         if epoch >= max_epochs // 2 and epoch - best_epoch >= patience:
