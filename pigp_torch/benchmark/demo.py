@@ -108,19 +108,33 @@ class EpochLines:
     """The ``on_epoch`` of :func:`~pigp_torch.surrogate.train_surrogate` in the demo: a plain
     line (network k of K, epoch e of E, validation loss, seconds) after the first epoch, then
     after the first epoch that ends ``every`` s of this process's CPU time (``clock``, default
-    :func:`time.process_time`) after the last line, and after the last epoch. Plain lines, not a
-    bar: they stay readable between the lines of a run on another process, and in a log file.
-    Picklable (it runs in worker processes too)."""
+    :func:`time.process_time`) or ``wall_every`` s of wall time (``wall_clock``, default
+    :func:`time.perf_counter`; a busy machine) after the last line, and after the last epoch.
+    Plain lines, not a bar: they stay readable between the lines of a run on another process,
+    and in a log file. Picklable (it runs in worker processes too)."""
 
-    def __init__(self, member: int, members: int, every: float = PROGRESS_EVERY_S, clock=None):
+    def __init__(
+        self,
+        member: int,
+        members: int,
+        every: float = PROGRESS_EVERY_S,
+        wall_every: float = 6 * PROGRESS_EVERY_S,
+        clock=None,
+        wall_clock=None,
+    ) -> None:
         self.member, self.members, self.every = int(member), int(members), float(every)
-        self.clock = clock
-        self._last: float | None = None
+        self.wall_every = float(wall_every)
+        self.clock, self.wall_clock = clock, wall_clock
+        self._last: tuple[float, float] | None = None
 
     def __call__(self, r: dict) -> None:
-        now = (self.clock or time.process_time)()
-        last = r["epoch"] >= r["max_epochs"]
-        if self._last is not None and now - self._last < self.every and not last:
+        now = ((self.clock or time.process_time)(), (self.wall_clock or time.perf_counter)())
+        due = self._last is None or r["epoch"] >= r["max_epochs"]
+        if (
+            not due
+            and now[0] - self._last[0] < self.every
+            and now[1] - self._last[1] < (self.wall_every)
+        ):
             return
         self._last = now
         print(f"      network {self.member}/{self.members}: epoch {r['epoch']}/{r['max_epochs']}, "
@@ -169,9 +183,10 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     cache = None if a.no_cache else DemoCache(a.cache_dir or default_cache_dir())
     key = {"model_seed": a.model_seed, "n": a.n, "members": a.members,
            "target": a.target, "noise": 0.04, "sample_seed": 0}  # fmt: skip
+    hit = None if cache is None else cache.load_prior(key)
+    _print_start(a, None if hit is None else cache.path("prior", key))
     model_ring = SPEAR3.build(a.model_seed)
     names = list(model_ring.knob_names)
-    hit = None if cache is None else cache.load_prior(key)
     want_ensemble = bool(a.center_ensemble) and any(
         METHODS[m].uses_center_ensemble for m in a.methods
     )
@@ -182,7 +197,6 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
              for m in a.methods}  # fmt: skip
     with job_pool(a.workers) as pool:
         parallel = not isinstance(pool, InlineExecutor)
-        _print_start(a, None if hit is None else cache.path("prior", key))
         # with a second process, a method that needs no prior (ML-II) starts there at once
         early = [m for m in a.methods if parallel and not specs[m].needs_prior]
         if early:

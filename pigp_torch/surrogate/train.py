@@ -150,27 +150,22 @@ def train_surrogate(
         f_inf: background loss rate :math:`f_\infty`; default: ``data.metadata["f_inf"]``.
         bounds: ``2 x d`` knob bounds; default: ``data.metadata["bounds"]``.
         widths, activation, target: architecture (see :class:`SurrogateMLP`).
-        val_fraction: fraction of samples held out for validation (in ``(0, 1)``).
-        batch_size, weight_decay: minibatch size; AdamW decoupled weight decay.
+        val_fraction, batch_size: held-out fraction (in ``(0, 1)``); minibatch size.
+        weight_decay: AdamW decoupled weight decay.
         lr, lr_min_factor: peak learning rate; final/peak ratio of the cosine decay.
         max_epochs, patience: maximum number of epochs; early-stopping patience (epochs).
         time_limit: optional wall-clock limit in seconds for the epoch loop.
         excess_floor: floor of :math:`y - f_\infty` (default :math:`10^{-3}` times the median
             positive excess); samples below it (e.g. :math:`y \le f_\infty`) are clamped to it,
             left out of :math:`m, s` and counted in the report (a warning says so).
-        near_fraction: fraction of validation points with the highest loss rate that form the
-            "near-optimum" subset of the report.
+        near_fraction: share of the highest-loss validation points in the report's near-optimum.
         seed: seeds the initialization, the split and the shuffling (same seed, same weights).
         device: ``"cpu"`` or ``"cuda"``; training runs there, the returned model is on CPU.
-        dtype: training precision (``torch.float32`` default; float64 is slower and, for
-            these networks, does not change the prior's Hessian beyond its own noise).
-        num_threads: CPU threads for the fit (restored afterwards); ``None`` keeps torch's
-            setting (a network this small gains nothing from intra-op parallelism).
+        dtype: training precision (default float32; float64: slower, same Hessian within noise).
+        num_threads: CPU threads of the fit (restored afterwards); ``None``: torch's setting.
         progress: show a tqdm progress bar.
-        on_epoch: called after every epoch with ``{"epoch", "max_epochs", "train_loss",
-            "val_loss", "best_val_loss", "best_epoch", "elapsed_s"}`` (losses of the normalized
-            target, seconds since the first epoch began); e.g. a printer of plain progress lines
-            (``pigp demo``'s worker processes, where a bar would garble). Changes no number.
+        on_epoch: called after each epoch with ``{"epoch", "max_epochs", "train_loss",
+            "val_loss", "best_val_loss", "best_epoch", "elapsed_s"}`` (e.g. progress lines).
 
     Returns:
         ``(model, report)``: the model in ``float64`` eval mode on CPU, and a dict with the

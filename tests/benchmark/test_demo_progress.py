@@ -66,6 +66,18 @@ def test_the_prior_check_notice_is_announced_as_expected(small_demo):
     assert "is expected here" in note
 
 
+def test_on_a_busy_machine_epoch_lines_come_every_30_s_of_wall_time(capsys):
+    """0.1 s of CPU but 4 s of wall time per epoch: a line every 8 epochs (32 s)."""
+    wall = [0.0]
+    lines = EpochLines(1, 1, every=5.0, clock=lambda: wall[0] / 40, wall_clock=lambda: wall[0])
+    for epoch in range(1, 18):
+        wall[0] = 4.0 * epoch
+        lines({"epoch": epoch, "max_epochs": 200, "train_loss": 1.0, "val_loss": 0.5,
+               "best_val_loss": 0.5, "best_epoch": 1, "elapsed_s": wall[0]})  # fmt: skip
+    out = capsys.readouterr().out.splitlines()
+    assert [int(t.split("epoch ")[1].split("/")[0]) for t in out] == [1, 9, 17]
+
+
 def test_an_ensemble_ring_line_has_its_number_in_the_ensemble_and_seconds(capsys):
     from pigp_torch.simulation.ensemble import ring_optima
 
@@ -80,7 +92,7 @@ def test_epoch_lines_come_every_few_cpu_seconds_and_at_the_first_and_last_epoch(
     """A line at epoch 1, then at the first epoch 5 s of CPU after the last line, and at the
     last epoch; nothing in between."""
     now = [0.0]
-    lines = EpochLines(2, 3, every=5.0, clock=lambda: now[0])
+    lines = EpochLines(2, 3, every=5.0, clock=lambda: now[0], wall_clock=lambda: 0.0)
     for epoch in range(1, 21):
         now[0] = 0.7 * epoch  # 0.7 s of CPU per epoch
         lines({"epoch": epoch, "max_epochs": 20, "train_loss": 1.0, "val_loss": 0.5 / epoch,
