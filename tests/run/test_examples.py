@@ -88,5 +88,16 @@ def test_every_example_passes_the_dry_run(name, capsys, monkeypatch, tmp_path):
         assert knob in out
     if config.prior is not None:
         assert f"prior {config.prior}" in out
+    if kind == "sim":  # every number with its unit
+        assert "reading noise 0.04 mA/min" in out and "objective floor 0.1 mA/min" in out
     after = config.log.stat().st_mtime_ns if config.log.exists() else None
     assert after == before  # the run log is neither made nor touched
+
+
+def test_a_bound_outside_the_simulated_ring_is_refused_with_its_unit(tmp_path, capsys):
+    data = yaml.safe_load((EXAMPLES / "run_sim.yaml").read_text())
+    data["knobs"]["01G-QSS4"] = [-40, 40]
+    data["log"] = str(tmp_path / "run.jsonl")
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(data))
+    assert cli.main(["optimize", "--config", str(tmp_path / "run.yaml"), "--dry-run"]) == 2
+    assert "bounds outside the simulator's range [-30, 30] A" in capsys.readouterr().err
