@@ -80,8 +80,7 @@ def test_a_rejected_prior_reads_as_the_method_working():
     assert notes[0] == (
         "NOTICE  prior check: the readings disagree with the physics prior after 15 readings: "
         "misfit z = 4.1 > 3; stage 2 of 3. Meaning: this machine differs from the model ring "
-        "the prior was built from, so the method now fits those parts of the peak from the "
-        "readings; expected when the machine is not the model (as in pigp demo), harmless, the "
-        "run goes on"
+        "the prior was built from, so the method relaxes the prior as that stage says; expected "
+        "when the machine is not the model (as in pigp demo), harmless, the run goes on"
     )
     assert notes[1] == "NOTICE  other" and notice_text("other") == "other"

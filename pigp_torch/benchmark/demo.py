@@ -281,7 +281,7 @@ def _print_machine(a: DemoSettings, model_ring, methods, parallel: bool) -> None
     if any(METHODS[m].needs_prior for m in a.methods):
         print(f"      the prior is the model ring's (error seed {a.model_seed}), not this "
               "machine's: a NOTICE that the readings disagree with the physics prior is "
-              "expected here (pigp-physics then fits more of the peak from the readings)",
+              "expected here (pigp-physics then relaxes its prior and goes on)",
               flush=True)  # fmt: skip
 
 

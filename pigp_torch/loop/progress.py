@@ -35,18 +35,18 @@ def notice_text(message: str) -> str:
     The prior check's rejection (``pigp-physics``) says in words what it means: the readings
     do not fit the physics form with the prior's peak (its misfit test, or a relaxed model with
     more evidence), because the machine is not the model ring the prior was built from; the
-    method then fits the named parts of the peak (its scale and background, then its
-    eigen-scales and a wider centre) from the readings instead of taking them from the prior,
-    and goes on. That is the method adapting as designed, not a fault of the machine or the run,
-    and expected whenever the machine differs from the model (as in ``pigp demo``). Other notices
-    pass unchanged."""
+    method then moves to the named stage (a broader peak, or the peak's scale and background,
+    then its eigen-scales and a wider centre, fitted from the readings instead of taken from the
+    prior) and goes on. That is the method adapting as designed, not a fault of the machine or
+    the run, and expected whenever the machine differs from the model (as in ``pigp demo``).
+    Other notices pass unchanged."""
     if message.startswith(_PRIOR_REJECTED):
         rest = message[len(_PRIOR_REJECTED) :]
         return (
             "prior check: the readings disagree with the physics prior after "
             f"{rest}. Meaning: this machine differs from the model ring the prior was built "
-            "from, so the method now fits those parts of the peak from the readings; expected "
-            "when the machine is not the model (as in pigp demo), harmless, the run goes on"
+            "from, so the method relaxes the prior as that stage says; expected when the "
+            "machine is not the model (as in pigp demo), harmless, the run goes on"
         )
     return message
 
