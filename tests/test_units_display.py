@@ -75,3 +75,20 @@ def test_quadrupoles_and_correctors_get_a_knob_panel_each():
         assert max(axes[0].get_lines()[0].get_ydata()) == 500.0  # 5e-4 m read as 500 µm
     finally:
         plt.close(fig)
+
+
+def test_a_runs_table_carries_units_in_its_headers_and_reads_back_with_plain_names(tmp_path):
+    import pandas as pd
+
+    from pigp_torch.data.tables import read_table, with_units
+
+    df = pd.DataFrame({"step": [0, 1], "machine_seed": [1, 1], "01G-QSS4": [0.0, 2.5],
+                       "y": [0.6, 0.7], "method": ["pigp"] * 2, "ask_time_s": [0.1, 0.2],
+                       "gain_fraction": [0.0, 0.5], "steps_to_95_median": [3.0, 3.0]})  # fmt: skip
+    with_units(df, {"01G-QSS4": "A"}).to_csv(tmp_path / "runs.csv", index=False)
+    header = (tmp_path / "runs.csv").read_text().splitlines()[0]
+    assert header == ("step,machine_seed,01G-QSS4 [A],y [mA/min],method,ask_time_s,"
+                      "gain_fraction,steps_to_95_median [evaluations]")  # fmt: skip
+    pd.testing.assert_frame_equal(read_table(tmp_path / "runs.csv"), df)
+    df.to_csv(tmp_path / "old.csv", index=False)  # a file written before the units
+    pd.testing.assert_frame_equal(read_table(tmp_path / "old.csv"), df)

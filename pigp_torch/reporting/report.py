@@ -211,7 +211,9 @@ def compare_report(folder: str | Path) -> dict:
     csv = folder / "runs.csv"
     if not csv.is_file():
         raise FileNotFoundError(f"{folder} has no runs.csv (not a pigp compare folder)")
-    df = pd.read_csv(csv)
+    from pigp_torch.data.tables import read_table
+
+    df = read_table(csv)  # the plain column names (the file's headers carry units)
     notes = []
     summary = folder / "summary.csv"
     if summary.is_file():
