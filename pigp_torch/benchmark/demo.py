@@ -130,11 +130,8 @@ class EpochLines:
     def __call__(self, r: dict) -> None:
         now = ((self.clock or time.process_time)(), (self.wall_clock or time.perf_counter)())
         due = self._last is None or r["epoch"] >= r["max_epochs"]
-        if (
-            not due
-            and now[0] - self._last[0] < self.every
-            and now[1] - self._last[1] < (self.wall_every)
-        ):
+        cpu, wall = (now[0] - self._last[0], now[1] - self._last[1]) if not due else (0, 0)
+        if not due and cpu < self.every and wall < self.wall_every:
             return
         self._last = now
         print(f"      network {self.member}/{self.members}: epoch {r['epoch']}/{r['max_epochs']}, "
