@@ -15,7 +15,8 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
       02G-QSS3: [-30, 30]
     objective: {maximize: true}   # epics: {pv: SPEAR:BeamLossRate, maximize: true}
     method: {name: nelder-mead, options: {initial_simplex_size: 0.05}}
-    prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match
+    prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match, or
+                                  # builtin:spear3, the SPEAR3 prior shipped with the package
     budget: 60
     max_step: 0.1                 # required: fraction of each knob's half-range, {knob: value},
                                   # or the word unlimited (no step limit, deliberately)
@@ -69,6 +70,7 @@ from pydantic import (
 )
 
 from pigp_torch._utils import DTYPE, max_step_tensor
+from pigp_torch.data import BUILTIN_PREFIX, builtin_prior
 from pigp_torch.loop.config.machines import (
     EpicsMachineConfig,
     Flag,
@@ -116,7 +118,8 @@ class RunConfig(_Section):
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
         prior: a :class:`~pigp_torch.prior.PhysicsPrior` JSON file (required by the methods
-            built from the physics prior).
+            built from the physics prior), or ``builtin:NAME``, a prior shipped with the package
+            (:data:`pigp_torch.data.BUILTIN_PRIORS`: ``builtin:spear3``, the 13 windings).
         budget: evaluations, the start point included.
         max_step: largest change of a knob per ``set`` (required): a fraction of each knob's
             half-range, ``{knob: absolute}``, or ``"unlimited"`` (no step limit).
@@ -204,6 +207,8 @@ class RunConfig(_Section):
     @field_validator("prior", "log", "lock_dir")
     @classmethod
     def _resolve_paths(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        if info.field_name == "prior" and str(path).startswith(BUILTIN_PREFIX):
+            return builtin_prior(str(path))  # a prior shipped with the package
         return _resolve(path, info)
 
     @model_validator(mode="after")

@@ -135,7 +135,7 @@ def build_machine(config: RunConfig):
         if outside:
             raise ConfigError(
                 f"knobs {outside}: bounds outside the simulator's range "
-                f"[{float(sim.bounds[0, 0])}, {float(sim.bounds[1, 0])}]"
+                f"[{float(sim.bounds[0, 0]):g}, {float(sim.bounds[1, 0]):g}] {config.knob_unit}"
             )
         x_init = torch.tensor([(m.x_init or {}).get(n, 0.0) for n in names], dtype=DTYPE)
         x_init = torch.minimum(torch.maximum(x_init, bounds[0]), bounds[1])  # 0 may lie outside
