@@ -183,8 +183,29 @@ def _plain_warnings():
 
 
 def cmd_optimize(args) -> int:
+    _check_arguments(args)
     with _plain_warnings():
         return _optimize(args)
+
+
+def _check_arguments(args) -> None:
+    """What can be refused before torch and the method registry are imported (a usage error, or
+    a run file that is unreadable or fails the schema answers in a fraction of a second): no run
+    file, and for a new run the run file itself (read and checked against the schema,
+    :func:`pigp_torch.loop.config.parse_config`; :func:`pigp_torch.loop.run.load_config` checks
+    it again, with the method and the prior). With ``--resume`` the log is read first, as before.
+
+    Raises:
+        ValueError: no ``--config`` nor ``--resume``; ConfigError: an invalid run file.
+        FileNotFoundError: no such run file.
+    """
+    if args.config is None and args.resume is None:
+        raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
+    if args.resume is None:
+        from pigp_torch.loop.config import parse_config, read_run_file
+
+        path = Path(args.config)
+        parse_config(read_run_file(path), base_dir=path.parent.absolute(), source=str(path))
 
 
 def _optimize(args) -> int:
@@ -196,8 +217,6 @@ def _optimize(args) -> int:
 
     torch.set_num_threads(1)  # an online run is measurement-bound; do not crowd the host
     out = sys.stdout
-    if args.config is None and args.resume is None:
-        raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
     from_header = False
     if args.resume is not None:
         if Path(args.resume).is_dir():
