@@ -2,8 +2,8 @@
 of ``pigp serve-sim`` over Channel Access), through Badger's own loop, knobs set back at the end.
 
     pigp badger-setup                      # once: Badger's config, pigp_sim, pigp_physics
-    pigp serve-sim --port 5064 &           # the simulated ring on 127.0.0.1
-    python examples/badger_routine.py --prior runs/demo/prior.json --ca-port 5064
+    pigp serve-sim &                       # the simulated ring on 127.0.0.1:5164
+    python examples/badger_routine.py --prior runs/demo/prior.json --ca-port 5164
 
 The prior is a ``PhysicsPrior`` JSON file with the 13 knobs of the simulated ring, e.g. the one
 ``pigp demo`` writes (``runs/demo/prior.json``) or ``pigp build-prior``'s. The routine starts
@@ -21,7 +21,9 @@ import sys
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--prior", required=True, help="PhysicsPrior JSON file (13 knobs)")
-    parser.add_argument("--ca-port", type=int, default=5064, help="IOC port on 127.0.0.1")
+    parser.add_argument(
+        "--ca-port", type=int, default=5164, help="IOC port on 127.0.0.1 (pigp serve-sim's default)"
+    )
     parser.add_argument("--evaluations", type=int, default=20, help="readings, start included")
     parser.add_argument(
         "--max-travel", type=float, default=0.05, help="step limit, fraction of each range"

@@ -15,6 +15,7 @@ import torch
 from caproto import CaprotoTimeoutError
 
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.testing import SIM_CA_PORT
 from pigp_torch.testing.ioc import (
     client_environment,
     free_port,
@@ -241,7 +242,12 @@ def test_serve_sim_parser():
     assert set(sub.choices) == {"bench", "serve-sim"} and not bench.choices
     args = parser.parse_args(["serve-sim"])
     assert (args.seed, args.knobs, args.noise, args.prefix) == (1, "paper13", 0.04, "SPEAR:")
-    assert (args.port, args.update_period, args.readback_delay) == (5064, 0.1, 0.0)
+    assert (args.port, args.update_period, args.readback_delay) == (SIM_CA_PORT, 0.1, 0.0)
+    assert SIM_CA_PORT not in (5064, 5065, 5075, 5076)  # CA's and pvAccess's standard ports
+    from pigp_torch.integrations.badger import SERVE_HINT
+
+    assert f"127.0.0.1:{SIM_CA_PORT}" in SERVE_HINT and f"ca_port {SIM_CA_PORT}" in SERVE_HINT
+    assert "5064" not in SERVE_HINT  # badger-setup's hint names the default, not CA's port
     assert args.func is serve_sim.cmd_serve_sim
     args = parser.parse_args(
         ["serve-sim", "--seed", "3", "--port", "5999", "--prefix", "X:", "--readback-delay", "2"]
