@@ -105,7 +105,7 @@ run's first start (not to where a crash left them), and the new start record not
 knobs were found (``found_knobs``).
 """
 
-import importlib
+from pigp_torch._utils.lazy import lazy_exports
 
 #: public name -> the module that defines it (imported on first use: the ``pigp`` parser and the
 #: run-file schema, :mod:`pigp_torch.loop.config`, are read without loading torch)
@@ -118,13 +118,7 @@ _EXPORTS = {
     "RunAborted": "signals",
     "Terminated": "signals",
 }
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = [
     "RAMP_FRACTION",
