@@ -231,6 +231,17 @@ def test_free_port_is_free_for_tcp_and_udp():
         udp.bind(("127.0.0.1", port))
 
 
+def test_the_docs_point_clients_at_the_default_port():
+    """README, docs/xopt.md and the examples name serve-sim's default port, never CA's 5064."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    for name in ("README.md", "docs/xopt.md", "examples/run_epics.yaml",
+                 "examples/badger_routine.py"):  # fmt: skip
+        text = (root / name).read_text(encoding="utf-8")
+        assert str(SIM_CA_PORT) in text and "5064" not in text, name
+
+
 def test_serve_sim_parser():
     """`pigp serve-sim` registers with its options and defaults."""
     from pigp_torch.commands import serve_sim
