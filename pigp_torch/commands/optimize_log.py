@@ -1,11 +1,32 @@
 """The run log and the locks of ``pigp optimize``: the locks to take, the log's folder checked,
-an existing log described, a log to continue read (hash chain verified)."""
+an existing log described, a log to continue read (hash chain verified); and the arguments and
+run file checked before anything heavy is imported."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from pigp_torch.commands.optimize_output import say
+
+
+def _check_arguments(args) -> None:
+    """What can be refused before torch and the method registry are imported (a usage error, or
+    a run file that is unreadable or fails the schema answers in a fraction of a second): no run
+    file, and for a new run the run file itself (read and checked against the schema,
+    :func:`pigp_torch.loop.config.parse_config`; :func:`pigp_torch.loop.run.load_config` checks
+    it again, with the method and the prior). With ``--resume`` the log is read first, as before.
+
+    Raises:
+        ValueError: no ``--config`` nor ``--resume``; ConfigError: an invalid run file.
+        FileNotFoundError: no such run file.
+    """
+    if args.config is None and args.resume is None:
+        raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
+    if args.resume is None:
+        from pigp_torch.loop.config import parse_config, read_run_file
+
+        path = Path(args.config)
+        parse_config(read_run_file(path), base_dir=path.parent.absolute(), source=str(path))
 
 
 def _locks(config, log_path: Path):
@@ -20,7 +41,14 @@ def _locks(config, log_path: Path):
 
 
 def _check_log_folder(path: Path) -> None:
-    """The run log's folder is (or can be made) a writable folder."""
+    """The run log's folder is (or can be made) a writable folder.
+
+    Raises:
+        ValueError: the path is no place for a log (a file where its folder should be, a
+            folder given as the log): invalid input.
+        PermissionError: the folder is not writable (the log cannot be started, as on a full
+            disk).
+    """
     import os
 
     folder = path.parent
@@ -29,7 +57,11 @@ def _check_log_folder(path: Path) -> None:
     if not folder.is_dir():
         raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
+        import errno
+
+        raise PermissionError(  # like a full disk: the log cannot be started (exit 1)
+            errno.EACCES, f"the run log {path} cannot be created: {folder} is not writable"
+        )
     if path.is_dir():
         raise ValueError(f"the run log {path} is a folder; give a file name")
 
@@ -57,3 +89,32 @@ def _read_resumed(path: Path, *, warn_out=None):
         for note in records.warnings:
             say(warn_out, f"warning: {note}")
     return records
+
+
+def unverified_target(setup, records) -> str | None:
+    """Why a log without a hash chain (an older version's) may not restore to its logged
+    initial knobs without confirmation: they cannot be verified, and they differ from the
+    machine's setpoints now by more than the run's step limit (``None``: no chain needed, or
+    within the step limit)."""
+    import torch
+
+    from pigp_torch.loop import effective_max_step
+    from pigp_torch.loop.moves import setpoints_of
+
+    initial = records.initial_knobs
+    if records.chained or initial is None:
+        return None
+    now = setpoints_of(setup.machine)
+    bounds = setup.config.bounds()
+    limit = effective_max_step(setup.machine, bounds, setup.config.machine_max_step())
+    delta = (torch.tensor(initial, dtype=now.dtype) - now).abs()
+    far = delta > (limit if limit is not None else torch.full_like(delta, float("inf")))
+    if not bool(far.any()):
+        return None
+    names = [n for n, f in zip(setup.config.knob_names, far.tolist(), strict=True) if f]
+    return (
+        f"{records.path} has no hash chain (run-log version {records.header.get('version')}): "
+        f"its restore target (the initial knobs above) cannot be verified and is more than "
+        f"max_step from the setpoints now for {', '.join(names)}; refused, nothing was moved "
+        "(check the target, then resume with --accept-restore-target to restore there)"
+    )

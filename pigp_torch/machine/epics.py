@@ -11,8 +11,9 @@ Channel Access (CA), so :func:`pigp_torch.optimize` drives a control system exac
    :math:`\ell \le x \le h` and, with ``max_step``, :math:`|x - x_\mathrm{sp}| \le m` per knob,
    where :math:`x_\mathrm{sp}` are the *setpoint* PVs read just before — the setpoints the IOC
    holds, never the readbacks, so a readback offset or a stuck readback cannot widen a step);
-2. all setpoints are written in parallel with put-completion (``WriteNotify``) and every
-   completion must arrive within ``timeout``; each completed put updates
+2. the setpoints that change are written in parallel with put-completion (``WriteNotify``)
+   and every completion must arrive within ``timeout`` (a put the IOC refuses raises
+   :class:`~pigp_torch.machine.errors.PutRefused` naming it); each completed put updates
    :attr:`EpicsMachine.last_acknowledged` (per knob), so after a failure it holds what the IOC
    really received;
 3. after ``settle_time`` the readbacks are polled (every 50 ms, for at most ``timeout``) until
@@ -342,13 +343,21 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         super().set(x)
 
     def _apply(self, x: torch.Tensor) -> None:
-        """Write the setpoints, wait ``settle_time``, poll the readbacks until they match."""
+        """Write the setpoints that change (those equal to the setpoints read just before are
+        not put again: a knob the IOC would now refuse, e.g. outside narrowed control limits,
+        does not block the others), wait ``settle_time``, poll the readbacks until they match."""
         target = x.tolist()
+        held = self._x.tolist()
+        changed = [i for i in range(len(target)) if target[i] != held[i]]
 
-        def on_ack(i: int) -> None:  # a put completion arrived: the IOC holds target[i]
-            self._acknowledged[i] = target[i]
+        def on_ack(k: int) -> None:  # a put completion arrived: the IOC holds that target
+            self._acknowledged[changed[k]] = target[changed[k]]
 
-        self._ca.write_many(self.setpoint_pvs, target, self.timeout, on_ack=on_ack)
+        if changed:
+            self._ca.write_many(
+                [self.setpoint_pvs[i] for i in changed], [target[i] for i in changed],
+                self.timeout, on_ack=on_ack,
+            )  # fmt: skip
         if self.settle_time > 0:
             time.sleep(self.settle_time)
         deadline = time.monotonic() + self.timeout

@@ -31,6 +31,9 @@ GLITCH_READINGS_SUFFIX = "Sim:GlitchReadings"
 GLITCH_VALUE_SUFFIX = "Sim:GlitchValue"
 STUCK_KNOB_SUFFIX = "Sim:StuckKnob"
 READBACK_OFFSET_SUFFIX = "Sim:ReadbackOffset"
+NARROW_KNOB_SUFFIX = "Sim:NarrowKnob"
+NARROW_LIMIT_SUFFIX = "Sim:NarrowLimit"
+STALL_PUTS_SUFFIX = "Sim:StallPuts"
 #: Display limits (LOPR/HOPR) of the simulated loss-rate PV, mA/min.
 LOSS_RATE_LIMITS = (0.0, 100.0)
 #: Loopback: the simulated IOC never listens on an outside interface.
@@ -123,12 +126,15 @@ __all__ = [
     "LOSS_RATE_LIMITS",
     "LOSS_RATE_SUFFIX",
     "NAN_READINGS_SUFFIX",
+    "NARROW_KNOB_SUFFIX",
+    "NARROW_LIMIT_SUFFIX",
     "READBACK_DELAY_SUFFIX",
     "READBACK_OFFSET_SUFFIX",
     "READBACK_SUFFIX",
     "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
     "SIM_CA_PORT",
+    "STALL_PUTS_SUFFIX",
     "STUCK_KNOB_SUFFIX",
     "add_ioc_arguments",
     "free_ports",

@@ -18,6 +18,7 @@ from pigp_torch.benchmark.families import (
 )
 from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
 from pigp_torch.benchmark.protocol import run_benchmark, run_one
+from pigp_torch.data.tables import read_table
 from pigp_torch.simulation.calibration import peak_density
 from pigp_torch.simulation.spec import SPEAR3, RingSpec
 
@@ -147,7 +148,6 @@ def test_oracle_prior_of_a_wide_machine_is_its_own_peak(wide, tiny_prior):
 def test_pigp_compare_runs_the_wide_family(wide, tmp_path, capsys):
     """``pigp compare --family wide`` runs and scores the wide machines; with --model-maps it
     is refused at once with the reason."""
-    import pandas as pd
 
     from pigp_torch.cli import main
 
@@ -155,7 +155,7 @@ def test_pigp_compare_runs_the_wide_family(wide, tmp_path, capsys):
     argv = ["compare", "--methods", "nelder-mead", "--seeds", str(SEED), "--family", "wide"]
     argv += ["--budget-direct", "3", "--prior-source", "exact", "-o", str(out)]
     assert main(argv) == 0
-    runs = pd.read_csv(out / "runs.csv")
+    runs = read_table(out / "runs.csv")
     assert len(runs) == 3 and (runs["family"] == "wide").all()
     assert runs["f_star"].iloc[0] == pytest.approx(wide_draw(SEED).f_star, rel=1e-6)
     assert main([*argv, "--model-maps"]) == 2

@@ -57,8 +57,11 @@ def test_pv_names_limits_and_initial_values():
         "T:Sim:RebootOnRead",
         "T:Sim:GlitchReadings",
         "T:Sim:StuckKnob",
+        "T:Sim:NarrowKnob",
         "T:Sim:GlitchValue",
         "T:Sim:ReadbackOffset",
+        "T:Sim:NarrowLimit",
+        "T:Sim:StallPuts",
     ]
     assert ioc.loss_rate_pv == "T:BeamLossRate"
     assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]
