@@ -2,8 +2,8 @@
 of ``pigp serve-sim`` over Channel Access), through Badger's own loop, knobs set back at the end.
 
     pigp badger-setup                      # once: Badger's config, pigp_sim, pigp_physics
-    pigp serve-sim --port 5064 &           # the simulated ring on 127.0.0.1
-    python examples/badger_routine.py --ca-port 5064
+    pigp serve-sim &                       # the simulated ring on 127.0.0.1:5164
+    python examples/badger_routine.py --ca-port 5164
 
 The prior is ``builtin:spear3`` (default), the prior of the 13 windings that ships with the
 package, or a ``PhysicsPrior`` JSON file with the same 13 knobs, e.g. the one ``pigp demo``
@@ -26,7 +26,9 @@ def main(argv=None) -> int:
         default="builtin:spear3",
         help="PhysicsPrior JSON file (13 knobs) or builtin:spear3, the shipped one (default)",
     )
-    parser.add_argument("--ca-port", type=int, default=5064, help="IOC port on 127.0.0.1")
+    parser.add_argument(
+        "--ca-port", type=int, default=5164, help="IOC port on 127.0.0.1 (pigp serve-sim's default)"
+    )
     parser.add_argument("--evaluations", type=int, default=20, help="readings, start included")
     parser.add_argument(
         "--max-travel", type=float, default=0.05, help="step limit, fraction of each range"

@@ -72,6 +72,45 @@ def test_report_of_a_simulated_pigp_physics_run(physics_log, capsys):
     assert base64.b64decode(embedded) == png.read_bytes()
     assert "http" not in text.replace("<!DOCTYPE html>", "")  # self-contained: no external link
     assert "best true value" in text and "fitted optimum" in text
+    out = capsys.readouterr().out  # a line before each step that takes a while
+    assert "building the simulated ring (error seed 1) ..." in out
+    assert "searching its true optimum within the run's bounds" in out
+    assert "refitting pigp-physics's form to the 6 readings ..." in out
+
+
+def full_search(machine, bounds, X, true):
+    """The wide search the report's seeded one is checked against: 8 Sobol starts, the zero
+    knobs and the run's best setting."""
+    from pigp_torch._utils.multistart import find_optimum
+
+    best = X[int(true.argmax())]
+    starts = torch.stack([torch.zeros_like(best), best])
+    return find_optimum(machine.sim.sim.loss_rate, bounds, n_starts=8, x_init=starts)
+
+
+def seeded_equals_full_search(log) -> None:
+    """The report's optimum (L-BFGS-B from the run's best settings, on one torch thread) is the
+    wide search's: value within 1e-9 relative, setting within 0.01 A (the maximum is flat)."""
+    from pigp_torch.loop.run import build_machine
+    from pigp_torch.reporting.report import _load_run_config, read_log
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        data = run_report(log, fit=False)
+        assert torch.get_num_threads() == 2  # pinned to one inside, the caller's count restored
+    finally:
+        torch.set_num_threads(threads)
+    machine = build_machine(_load_run_config(read_log(log)))
+    x_full, f_full = full_search(machine, data["bounds"], data["X"], data["true"])
+    x_star, f_star = data["optimum"]
+    assert f_star == pytest.approx(f_full, rel=1e-9)
+    assert float((x_star - x_full).abs().max()) < 1e-2
+    assert f_star >= float(data["true"].max())
+
+
+def test_seeded_optimum_search_equals_the_full_search(physics_log):
+    seeded_equals_full_search(physics_log)
 
 
 def test_report_notices_a_knob_at_its_limit_and_a_running_log(tmp_path):
@@ -153,6 +192,26 @@ def test_units_true_optimum_and_knob_colours_of_a_13_knob_run(tmp_path):
     assert re.search(r"best reading [0-9.]+ mA/min at evaluation", text)
     assert f"true optimum of the simulated machine {f_star:.6g} mA/min" in text
     assert "reading noise σ = 0.04 mA/min" in text and "knob settings in A" in text
+
+
+@pytest.mark.slow  # ~20 s: two 13-knob machines, each searched twice
+@pytest.mark.parametrize("error_seed", [1, 4])
+def test_seeded_optimum_search_equals_the_full_search_on_13_knobs(tmp_path, error_seed):
+    """A short 13-knob run (its best settings still far from the optimum): the report's seeded
+    search finds the wide search's optimum."""
+    from pigp_torch.simulation import Spear3Coupling
+
+    data = {
+        "machine": {"kind": "sim", "error_seed": error_seed, "noise": 0.04, "seed": 2},
+        "knobs": {k: [-30, 30] for k in Spear3Coupling(1).knob_names},
+        "method": {"name": "rcds", "options": {"noise": 0.04, "step": 0.05}},
+        "budget": 12,
+        "max_step": 0.1,
+        "log": "run.jsonl",
+    }
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(data))
+    assert cli.main(["optimize", "--config", str(tmp_path / "run.yaml"), "--quiet"]) == 0
+    seeded_equals_full_search(tmp_path / "run.jsonl")
 
 
 def test_an_epics_style_log_gets_its_run_file_units(tmp_path):

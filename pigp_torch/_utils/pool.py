@@ -54,6 +54,24 @@ def _one_thread() -> None:
 
 
 @contextlib.contextmanager
+def one_torch_thread():
+    """torch on one intra-op thread inside the block; the caller's thread count is restored.
+
+    For a command whose work is many small tensor operations (a GP step, a batched search on a
+    13-knob ring): two OpenMP threads on a busy two-core machine spend their time waiting at
+    barriers and multiply the CPU time; one thread gives the same numbers.
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+@contextlib.contextmanager
 def job_pool(workers: int):
     """An executor of ``workers - 1`` processes (``spawn``, torch on one thread each; the caller
     is the other worker), or an :class:`InlineExecutor` for ``workers == 1``; shut down (waiting

@@ -12,9 +12,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
-import torch
 
-from pigp_torch._utils.pool import InlineExecutor, default_workers, job_pool, spread
+from pigp_torch._utils.pool import (
+    InlineExecutor,
+    default_workers,
+    job_pool,
+    one_torch_thread,
+    spread,
+)
 from pigp_torch.benchmark.demo_cache import (
     DemoCache,
     apply_cached_ensemble,
@@ -92,12 +97,8 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         ValueError: model and machine share a seed, either is among the ensemble seeds, a
             negative ensemble size, or an unknown method.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with one_torch_thread():
         return _run_demo(a)
-    finally:
-        torch.set_num_threads(threads)
 
 
 #: CPU seconds of a process between two progress lines of the surrogate's training.

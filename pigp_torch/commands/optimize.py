@@ -41,6 +41,7 @@ import sys
 from pathlib import Path
 
 from pigp_torch.commands.optimize_log import (
+    _check_arguments,
     _check_log_folder,
     _existing_log,
     _locks,
@@ -197,6 +198,7 @@ def _plain_warnings():
 
 
 def cmd_optimize(args) -> int:
+    _check_arguments(args)
     with _plain_warnings(), caproto_one_line():
         return _optimize(args)
 
@@ -210,8 +212,6 @@ def _optimize(args) -> int:
 
     torch.set_num_threads(1)  # an online run is measurement-bound; do not crowd the host
     out = sys.stdout
-    if args.config is None and args.resume is None:
-        raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
     from_header = False
     if args.resume is not None:
         if Path(args.resume).is_dir():

@@ -1,11 +1,32 @@
 """The run log and the locks of ``pigp optimize``: the locks to take, the log's folder checked,
-an existing log described, a log to continue read (hash chain verified)."""
+an existing log described, a log to continue read (hash chain verified); and the arguments and
+run file checked before anything heavy is imported."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from pigp_torch.commands.optimize_output import say
+
+
+def _check_arguments(args) -> None:
+    """What can be refused before torch and the method registry are imported (a usage error, or
+    a run file that is unreadable or fails the schema answers in a fraction of a second): no run
+    file, and for a new run the run file itself (read and checked against the schema,
+    :func:`pigp_torch.loop.config.parse_config`; :func:`pigp_torch.loop.run.load_config` checks
+    it again, with the method and the prior). With ``--resume`` the log is read first, as before.
+
+    Raises:
+        ValueError: no ``--config`` nor ``--resume``; ConfigError: an invalid run file.
+        FileNotFoundError: no such run file.
+    """
+    if args.config is None and args.resume is None:
+        raise ValueError("give a run file with --config RUN.yaml (or --resume LOG)")
+    if args.resume is None:
+        from pigp_torch.loop.config import parse_config, read_run_file
+
+        path = Path(args.config)
+        parse_config(read_run_file(path), base_dir=path.parent.absolute(), source=str(path))
 
 
 def _locks(config, log_path: Path):

@@ -21,9 +21,14 @@ def cmd_report(args) -> int:
             print(f"warning: {note}", file=sys.stderr)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RunLogWarning)  # printed above, once
-        png, page = write_report(target, args.output, noise=args.noise)
+        png, page = write_report(target, args.output, noise=args.noise, progress=_say)
     print(f"wrote {png} and {page}")
     return 0
+
+
+def _say(text: str) -> None:
+    """A line of progress on stdout, at once (the steps it announces take seconds)."""
+    print(text, flush=True)
 
 
 def register(sub, bench) -> None:

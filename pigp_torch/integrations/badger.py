@@ -311,6 +311,14 @@ def add_setup_arguments(p) -> None:
     )
 
 
+#: How to serve the simulated ring for the ``pigp_sim`` environment (the port is ``pigp
+#: serve-sim``'s default, :data:`pigp_torch.testing.SIM_CA_PORT`: not CA's standard 5064).
+SERVE_HINT = (
+    "serve the ring with `pigp serve-sim &` (Channel Access on 127.0.0.1:5164, its default port) "
+    "and give the environment ca_port 5164"
+)
+
+
 def cmd_setup(args) -> int:
     try:
         done = setup(site_dir=args.site_dir, startup_hook=not args.no_startup_hook)
@@ -320,10 +328,8 @@ def cmd_setup(args) -> int:
     width = max(len(k) for k in done)
     for key, value in done.items():
         print(f"{key:<{width}} : {value}")
-    print(
-        f"next: `badger generator` lists {GENERATOR}, `badger env` lists {ENVIRONMENT}; "
-        "serve the ring with `pigp serve-sim --port 5064 &`"
-    )
+    print(f"next: `badger generator` lists {GENERATOR}, `badger env` lists {ENVIRONMENT}; ", end="")
+    print(SERVE_HINT)
     return 0
 
 

@@ -110,10 +110,20 @@ run's first start (not to where a crash left them), and the new start record not
 knobs were found (``found_knobs``).
 """
 
-from pigp_torch.loop.core import optimize
-from pigp_torch.loop.moves import RAMP_FRACTION, effective_max_step
-from pigp_torch.loop.options import RESTORE_MODES, RunOptions
-from pigp_torch.loop.signals import RunAborted, Terminated
+from pigp_torch._utils.lazy import lazy_exports
+
+#: public name -> the module that defines it (imported on first use: the ``pigp`` parser and the
+#: run-file schema, :mod:`pigp_torch.loop.config`, are read without loading torch)
+_EXPORTS = {
+    "optimize": "core",
+    "RAMP_FRACTION": "moves",
+    "effective_max_step": "moves",
+    "RESTORE_MODES": "options",
+    "RunOptions": "options",
+    "RunAborted": "signals",
+    "Terminated": "signals",
+}
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = [
     "RAMP_FRACTION",

@@ -4,7 +4,7 @@ A smooth MLP (twice differentiable, so the prior can take its Hessian), its trai
 validation split and early stopping, and pickle-free save/load.
 """
 
-import importlib
+from pigp_torch._utils.lazy import lazy_exports
 
 #: public name -> the module that defines it (imported on first use: the ``pigp`` parser reads
 #: :mod:`pigp_torch.surrogate.defaults` without loading torch)
@@ -17,12 +17,7 @@ _EXPORTS = {
     "train_surrogate": "train",
 }
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 __all__ = [
     "SurrogateEnsemble",

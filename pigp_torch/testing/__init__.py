@@ -38,6 +38,11 @@ STALL_PUTS_SUFFIX = "Sim:StallPuts"
 LOSS_RATE_LIMITS = (0.0, 100.0)
 #: Loopback: the simulated IOC never listens on an outside interface.
 LOOPBACK = "127.0.0.1"
+#: Default Channel Access port of the simulated IOC (UDP search and first TCP port tried): not
+#: CA's own 5064/5065 (server, repeater), which any IOC or gateway on a control-room host already
+#: holds, nor pvAccess's 5075/5076; below the ephemeral range (Linux: 32768-60999), so no client
+#: socket is handed it. Clients find it with ``EPICS_CA_ADDR_LIST=127.0.0.1:5164``.
+SIM_CA_PORT = 5164
 
 
 def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -65,8 +70,11 @@ def add_ioc_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument(
         "--port",
         type=int,
-        default=5064,
-        help="Channel Access server port, UDP search and first TCP port tried (default 5064)",
+        default=SIM_CA_PORT,
+        help=f"Channel Access server port, UDP search and first TCP port tried (default "
+        f"{SIM_CA_PORT}: not CA's standard 5064/5065, which a control-room host's own IOCs and "
+        "gateways hold, nor pvAccess's 5075/5076; clients set "
+        f"EPICS_CA_ADDR_LIST=127.0.0.1:{SIM_CA_PORT} EPICS_CA_AUTO_ADDR_LIST=NO)",
     )
     p.add_argument(
         "--update-period",
@@ -125,6 +133,7 @@ __all__ = [
     "READBACK_SUFFIX",
     "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
+    "SIM_CA_PORT",
     "STALL_PUTS_SUFFIX",
     "STUCK_KNOB_SUFFIX",
     "add_ioc_arguments",

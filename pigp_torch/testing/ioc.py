@@ -19,6 +19,7 @@ import torch
 from pigp_torch.testing import (
     DEFAULT_PREFIX,
     LOOPBACK,
+    SIM_CA_PORT,
     add_ioc_arguments,
 )
 from pigp_torch.testing.ca_env import (
@@ -102,7 +103,7 @@ def make_sim_ioc(
 
 
 # ----------------------------------------------------------------------------- serving
-def serve(ioc: SimRingIOC, port: int = 5064, *, log_pv_names: bool = True) -> None:
+def serve(ioc: SimRingIOC, port: int = SIM_CA_PORT, *, log_pv_names: bool = True) -> None:
     """Run ``ioc`` in the foreground on 127.0.0.1:``port``; return after Ctrl-C or SIGTERM.
 
     Prints :data:`READY_MESSAGE` and (with ``log_pv_names``) the PV names once the server's

@@ -15,6 +15,7 @@ import torch
 from caproto import CaprotoTimeoutError
 
 from pigp_torch.machine import SimulatedMachine
+from pigp_torch.testing import SIM_CA_PORT
 from pigp_torch.testing.ioc import (
     client_environment,
     free_port,
@@ -233,6 +234,17 @@ def test_free_port_is_free_for_tcp_and_udp():
         udp.bind(("127.0.0.1", port))
 
 
+def test_the_docs_point_clients_at_the_default_port():
+    """README, docs/xopt.md and the examples name serve-sim's default port, never CA's 5064."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    for name in ("README.md", "docs/xopt.md", "examples/run_epics.yaml",
+                 "examples/badger_routine.py"):  # fmt: skip
+        text = (root / name).read_text(encoding="utf-8")
+        assert str(SIM_CA_PORT) in text and "5064" not in text, name
+
+
 def test_serve_sim_parser():
     """`pigp serve-sim` registers with its options and defaults."""
     from pigp_torch.commands import serve_sim
@@ -244,7 +256,12 @@ def test_serve_sim_parser():
     assert set(sub.choices) == {"bench", "serve-sim"} and not bench.choices
     args = parser.parse_args(["serve-sim"])
     assert (args.seed, args.knobs, args.noise, args.prefix) == (1, "paper13", 0.04, "SPEAR:")
-    assert (args.port, args.update_period, args.readback_delay) == (5064, 0.1, 0.0)
+    assert (args.port, args.update_period, args.readback_delay) == (SIM_CA_PORT, 0.1, 0.0)
+    assert SIM_CA_PORT not in (5064, 5065, 5075, 5076)  # CA's and pvAccess's standard ports
+    from pigp_torch.integrations.badger import SERVE_HINT
+
+    assert f"127.0.0.1:{SIM_CA_PORT}" in SERVE_HINT and f"ca_port {SIM_CA_PORT}" in SERVE_HINT
+    assert "5064" not in SERVE_HINT  # badger-setup's hint names the default, not CA's port
     assert args.func is serve_sim.cmd_serve_sim
     args = parser.parse_args(
         ["serve-sim", "--seed", "3", "--port", "5999", "--prefix", "X:", "--readback-delay", "2"]

@@ -58,9 +58,8 @@ import hashlib
 import json
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-import torch
 from pydantic import (
     Field,
     PrivateAttr,
@@ -69,7 +68,6 @@ from pydantic import (
     model_validator,
 )
 
-from pigp_torch._utils import DTYPE, max_step_tensor
 from pigp_torch.data import BUILTIN_PREFIX, builtin_prior
 from pigp_torch.loop.config.machines import (
     EpicsMachineConfig,
@@ -81,6 +79,9 @@ from pigp_torch.loop.config.machines import (
     _Section,
 )
 from pigp_torch.loop.config.sections import MachineConfig
+
+if TYPE_CHECKING:
+    import torch
 
 
 class ConfigError(ValueError):
@@ -272,12 +273,20 @@ class RunConfig(_Section):
 
     def bounds(self) -> torch.Tensor:
         """``2 x d`` knob bounds in knob order."""
+        import torch  # here, not at the top: validating a run file does not load torch
+
+        from pigp_torch._utils import DTYPE
+
         return torch.tensor(list(zip(*self.knobs.values(), strict=True)), dtype=DTYPE)
 
     def machine_max_step(self) -> float | torch.Tensor | None:
         """``max_step`` as the machines take it: a fraction, a ``d`` absolute tensor, or
         ``None`` (unlimited)."""
         if isinstance(self.max_step, dict):
+            import torch
+
+            from pigp_torch._utils import DTYPE
+
             return torch.tensor([self.max_step[n] for n in self.knobs], dtype=DTYPE)
         if self.max_step == "unlimited":
             return None
@@ -288,6 +297,8 @@ class RunConfig(_Section):
         range (one line naming every such knob)."""
         if self.max_step == "unlimited":
             return ["max_step: unlimited: no step limit, a proposal is reached in one set"]
+        from pigp_torch._utils import max_step_tensor
+
         bounds = self.bounds()
         width = bounds[1] - bounds[0]
         limit = max_step_tensor(self.machine_max_step(), bounds)
