@@ -52,7 +52,7 @@ from collections.abc import Callable
 
 import torch
 
-from pigp_torch.machine.errors import ReadError
+from pigp_torch.machine.errors import ReadError, SeverityError
 
 #: Outlier threshold :math:`k` in robust-scale units.
 OUTLIER_K = 5.0
@@ -171,16 +171,21 @@ def plausible_reading(
     agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
     attempts (``interval`` s apart), so at most ``retries + 2`` reads. ``parts()`` (if given)
     returns the single readings a machine averaged into the last one; each must be valid too.
+    A read refused for its alarm severity (:class:`~pigp_torch.machine.errors.SeverityError`) is
+    a failed attempt, its value reported to ``on_discard``; when every failed attempt was one,
+    the last is raised again saying how many reads in a row it was.
 
     Returns:
         ``(y, reads)``: the value and the readings taken.
 
     Raises:
+        SeverityError: more than ``retries`` failed attempts, every one for a PV's severity.
         ReadError: more than ``retries`` failed attempts.
     """
     problems: list[str] = []
     failures = reads = 0
     pending: list[tuple[float, str]] = []  # suspicious readings waiting for a re-read
+    alarms: list[BaseException] = []  # the failed reads' errors, in order
 
     def drop_pending(keep=None, detail: str = "") -> None:
         for y_p, why in pending:
@@ -197,6 +202,10 @@ def plausible_reading(
         except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
             problems.append(f"{type(err).__name__}: {err}")
             failures += 1
+            alarms.append(err)
+            if isinstance(err, SeverityError) and err.value is not None:
+                if math.isfinite(err.value):  # an objective reading refused by its severity
+                    on_discard(str(err), float(err.value))
             continue
         if y is None:
             problems.append("discarded")
@@ -229,6 +238,9 @@ def plausible_reading(
             failures += 1  # two suspicious readings that disagree
         pending.append((y, why))
     drop_pending(detail=": no re-read agreed")
+    if alarms and all(isinstance(e, SeverityError) for e in alarms):
+        last = alarms[-1]  # a PV that stays in alarm: name it and its severity
+        raise SeverityError(last.pv, last.severity, last.value, repeated=len(alarms))
     raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
 
 

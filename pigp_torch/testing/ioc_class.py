@@ -13,6 +13,9 @@ from caproto.server import pvproperty
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
 from pigp_torch.testing import (
+    ALARM_KNOB_SUFFIX,
+    ALARM_READINGS_SUFFIX,
+    ALARM_SEVERITY_SUFFIX,
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     GLITCH_READINGS_SUFFIX,
@@ -28,6 +31,10 @@ from pigp_torch.testing import (
     STUCK_KNOB_SUFFIX,
 )
 from pigp_torch.testing.ioc_pvs import SimRingIOC
+
+
+async def _put_alarm_knob(group, instance, value):
+    await group._on_alarm_knob(int(value))
 
 
 def sim_ioc_class(
@@ -142,15 +149,24 @@ def sim_ioc_class(
         ("stuck_knob", STUCK_KNOB_SUFFIX, 0, len(names),
          "fault injection: k >= 1 freezes the readback of knob k (1-based); 0 releases it"),
     )  # fmt: skip
-    for attr, suffix, value, upper, doc in switches:
+    alarms = (  # severity hooks: the loss rate on N reads (-1: every read), a knob's readback
+        ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 3,
+         "fault injection: the alarm severity served (0 NO_ALARM .. 3 INVALID)"),
+        ("alarm_readings", ALARM_READINGS_SUFFIX, 0, 1_000_000,
+         "fault injection: the next N reads of the loss rate carry AlarmSeverity; -1 every one"),
+        ("alarm_knob", ALARM_KNOB_SUFFIX, 0, len(names),
+         "fault injection: k >= 1 serves knob k's readback with AlarmSeverity; 0 none"),
+    )  # fmt: skip
+    for attr, suffix, value, upper, doc in (*switches, *alarms):
         attrs[attr] = pvproperty(
             value=value,
             name=f"{prefix}{suffix}",
             dtype=ChannelType.LONG,
-            lower_ctrl_limit=0,
+            lower_ctrl_limit=-1 if attr == "alarm_readings" else 0,
             upper_ctrl_limit=upper,
             doc=doc,
         )
+    attrs["alarm_knob"].putter(_put_alarm_knob)
     attrs["glitch_value"] = pvproperty(
         value=1e30,
         name=f"{prefix}{GLITCH_VALUE_SUFFIX}",

@@ -162,6 +162,7 @@ def build_machine(config: RunConfig):
         read_retries=0,  # the loop retries (config.read_retries), for every machine alike
         observable_pvs=m.observable_pvs,
         observable_units=m.observable_units,
+        refuse_severity=m.refuse_severity,
     )
 
 
