@@ -40,6 +40,9 @@ left at the best point :math:`x^*` (logged value :math:`y^*`):
   EITHER direction (a best that reads far better than logged is not the point that was
   measured either), and, with :math:`\sigma` stated, with each other: their range
   :math:`\max - \min \le a\sqrt 2\,\sigma`. Otherwise the run restores the initial knobs.
+* **Not below the start** (:func:`below_start`): the mean of those fresh readings must not be
+  worse than the control reading's at :math:`x_0` (lower when maximizing, higher when
+  minimizing): the knobs are never left at a point that reads worse than where the run began.
 
 A rejected best is not reported as the run's best (the end record names it ``rejected_best``).
 """
@@ -338,3 +341,24 @@ def confirm_best(
         worse = (y_best - out["mean"]) if maximize else (out["mean"] - y_best)
         out["message"] += "; worse than the best" if worse > 0 else "; better than the best"
     return out
+
+
+def below_start(confirmation: dict, control: dict | None, maximize: bool) -> str | None:
+    r"""Why the best point must not be kept although it reproduced: the mean :math:`\bar y^*` of
+    its fresh readings is worse than the mean :math:`\bar y_0` of the control reading at the
+    start point (:math:`\bar y^* < \bar y_0` when maximizing, :math:`>` when minimizing);
+    ``None`` when it is not, or when either has no mean (no control reading: the best is the
+    start point). Adds ``"control_mean"`` and ``"not_below_start"`` to ``confirmation``."""
+    if control is None or "mean" not in control or "mean" not in confirmation:
+        return None
+    best, start = float(confirmation["mean"]), float(control["mean"])
+    worse = (start - best) if maximize else (best - start)
+    confirmation["control_mean"] = start
+    confirmation["not_below_start"] = bool(worse <= 0)
+    if worse <= 0:
+        return None
+    side = "below" if maximize else "above"
+    return (
+        f"its {len(confirmation['readings'])} fresh reading(s) average {best:.6g}, {side} the "
+        f"control reading {start:.6g} at the start point (by {worse:.3g})"
+    )

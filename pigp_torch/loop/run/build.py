@@ -265,7 +265,12 @@ class RunSetup:
             restore_interval=c.restore_interval,
             noise=self.stated_noise(),
             objective_range=c.objective_range,
+            noise_reads=c.noise_reads if self.measures_noise() else 0,
         )
+
+    def measures_noise(self) -> bool:
+        """Whether the run measures its noise at the start: ``kind: epics`` stating none."""
+        return isinstance(self.config.machine, EpicsMachineConfig) and self.stated_noise() is None
 
     def stated_noise(self) -> float | None:
         """The noise of one reading the run states: ``objective_noise``, else the simulated
