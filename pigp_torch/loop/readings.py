@@ -164,31 +164,28 @@ def plausible_reading(
 ) -> tuple[float, int]:
     r"""A reading the run believes: ``take()`` until one is valid and (if suspicious) confirmed.
 
-    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (checked
-    against the machine's state, reported already), or raises ``ReadError``/``TimeoutError``
-    (a failed attempt) or ``MachineError`` (passed on). A reading invalid under ``judge`` is
-    reported to ``on_discard(reason, y)`` (NaN/inf quietly) and is a failed attempt. A
+    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (reported
+    already), or raises ``ReadError``/``TimeoutError`` (a failed attempt; a ``SeverityError``
+    reported to ``on_discard``) or ``MachineError`` (passed on). A reading invalid under
+    ``judge`` is reported to ``on_discard(reason, y)`` (NaN/inf quietly), a failed attempt. A
     suspicious reading waits for a re-read: a later valid reading that agrees with it confirms
-    it (the value is their mean; other waiting readings are discarded); one that is not
-    suspicious itself is kept and the waiting ones are discarded; one that is suspicious and
-    agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
-    attempts (``interval`` s apart), so at most ``retries + 2`` reads. ``parts()`` (if given)
-    returns the single readings a machine averaged into the last one; each must be valid too.
-    A read refused for its alarm severity (:class:`~pigp_torch.machine.errors.SeverityError`) is
-    a failed attempt, its value reported to ``on_discard``; when every failed attempt was one,
-    the last is raised again saying how many reads in a row it was.
+    it (the value is their mean; other waiting readings are discarded); one not suspicious
+    itself is kept and the waiting ones are discarded; one suspicious agreeing with none waits
+    too, a failed attempt. At most ``retries`` failed attempts (``interval`` s apart), so at
+    most ``retries + 2`` reads. ``parts()`` (if given): the single readings a machine averaged
+    into the last one; each must be valid too.
 
     Returns:
         ``(y, reads)``: the value and the readings taken.
 
     Raises:
-        SeverityError: more than ``retries`` failed attempts, every one for a PV's severity.
-        ReadError: more than ``retries`` failed attempts.
+        ReadError: more than ``retries`` failed attempts (``SeverityError``, with their count,
+            when all were for a PV's alarm severity).
     """
     problems: list[str] = []
     failures = reads = 0
     pending: list[tuple[float, str]] = []  # suspicious readings waiting for a re-read
-    alarms: list[BaseException] = []  # the failed reads' errors, in order
+    alarms: list[BaseException] = []  # the errors of the reads that raised
 
     def drop_pending(keep=None, detail: str = "") -> None:
         for y_p, why in pending:
@@ -203,12 +200,7 @@ def plausible_reading(
         try:
             y = take()
         except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
-            problems.append(f"{type(err).__name__}: {err}")
-            failures += 1
-            alarms.append(err)
-            if isinstance(err, SeverityError) and err.value is not None:
-                if math.isfinite(err.value):  # an objective reading refused by its severity
-                    on_discard(str(err), float(err.value))
+            failures += _failed_read(err, problems, alarms, on_discard)
             continue
         if y is None:
             problems.append("discarded")
@@ -241,10 +233,28 @@ def plausible_reading(
             failures += 1  # two suspicious readings that disagree
         pending.append((y, why))
     drop_pending(detail=": no re-read agreed")
-    if alarms and all(isinstance(e, SeverityError) for e in alarms):
-        last = alarms[-1]  # a PV that stays in alarm: name it and its severity
-        raise SeverityError(last.pv, last.severity, last.value, repeated=len(alarms))
-    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+    raise _no_valid_reading(retries, failures, problems, alarms)
+
+
+def _failed_read(err, problems: list, alarms: list, on_discard) -> int:
+    """A read that raised: noted (returns 1, a failed attempt); an objective reading refused for
+    its alarm severity is reported to ``on_discard`` with its value."""
+    problems.append(f"{type(err).__name__}: {err}")
+    alarms.append(err)
+    value = getattr(err, "value", None) if isinstance(err, SeverityError) else None
+    if value is not None and math.isfinite(value):
+        on_discard(str(err), float(value))
+    return 1
+
+
+def _no_valid_reading(retries: int, failures: int, problems: list, alarms: list) -> ReadError:
+    """The error of a reading that failed every attempt: a ``SeverityError`` naming the PV when
+    every failed attempt was refused for its severity (the PV stays in alarm), else a
+    ``ReadError`` listing the problems."""
+    if len(alarms) == failures and all(isinstance(e, SeverityError) for e in alarms):
+        last = alarms[-1]
+        return SeverityError(last.pv, last.severity, last.value, repeated=len(alarms))
+    return ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
 
 
 #: Fresh readings taken at the best point before the knobs are left there (``restore: best``).

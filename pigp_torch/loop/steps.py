@@ -91,10 +91,9 @@ def run_steps(
     guard: SignalGuard,
     start_fields=(),
 ) -> None:
-    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`; appends to ``rows`` as
-    it goes. ``observables()`` gives those of the evaluation's reading (the last one taken) or
-    ``None``: they are logged with it and told to an optimizer that fits them. ``start_fields``
-    are logged with the start record."""
+    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`, appended to ``rows``.
+    ``observables()``: those of the evaluation's reading (the last one taken) or ``None``, logged
+    with it and told to an optimizer that fits them; ``start_fields``: in the start record."""
     if log is not None:
         _log_start(log, x_initial, x_found, rb_found, budget, first, start_fields)
     bar = None

@@ -104,6 +104,7 @@ def sim_ioc_class(
             read_only=True,
             precision=6,
             units=str(units),
+            alarm_group=f"readback_{i}",  # its own alarm (caproto shares one per group)
             doc=f"readback of {name} ({units})",
         )
 
@@ -116,6 +117,7 @@ def sim_ioc_class(
         units="mA/min",
         lower_disp_limit=LOSS_RATE_LIMITS[0],
         upper_disp_limit=LOSS_RATE_LIMITS[1],
+        alarm_group="loss_rate",
         doc="simulated loss rate at the readbacks plus Gaussian noise (mA/min)",
     )
 

@@ -185,14 +185,12 @@ class SimRingIOC(PVGroup):
         await self.readbacks[i].write(value, **self._alarm(int(self.alarm_knob.value) == i + 1))
 
     def _alarm(self, on: bool) -> dict:
-        """The alarm fields of a write: ``Sim:AlarmSeverity`` (status READ) when ``on``, else
-        none (NO_ALARM)."""
-        if not on or int(self.alarm_severity.value) == 0:
-            return {"status": AlarmStatus.NO_ALARM, "severity": AlarmSeverity.NO_ALARM}
-        return {
-            "status": AlarmStatus.READ,
-            "severity": AlarmSeverity(int(self.alarm_severity.value)),
-        }
+        """The alarm keywords of a write: ``Sim:AlarmSeverity`` (status READ) when ``on``, else
+        none (NO_ALARM); ``verify_value`` off, as caproto's limit check would otherwise put
+        the alarm of the record's own (absent) limits back over the one given."""
+        severity = int(self.alarm_severity.value) if on else 0
+        status = AlarmStatus.READ if severity else AlarmStatus.NO_ALARM
+        return {"status": status, "severity": AlarmSeverity(severity), "verify_value": False}
 
     async def _on_alarm_knob(self, k: int) -> None:
         """A new ``Sim:AlarmKnob``: every readback written again with its alarm (knob ``k``'s
