@@ -151,24 +151,15 @@ def sim_ioc_class(
         ("stuck_knob", STUCK_KNOB_SUFFIX, 0, len(names),
          "fault injection: k >= 1 freezes the readback of knob k (1-based); 0 releases it"),
     )  # fmt: skip
-    alarms = (  # severity hooks: the loss rate on N reads (-1: every read), a knob's readback
-        ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 3,
-         "fault injection: the alarm severity served (0 NO_ALARM .. 3 INVALID)"),
-        ("alarm_readings", ALARM_READINGS_SUFFIX, 0, 1_000_000,
-         "fault injection: the next N reads of the loss rate carry AlarmSeverity; -1 every one"),
-        ("alarm_knob", ALARM_KNOB_SUFFIX, 0, len(names),
-         "fault injection: k >= 1 serves knob k's readback with AlarmSeverity; 0 none"),
-    )  # fmt: skip
-    for attr, suffix, value, upper, doc in (*switches, *alarms):
+    for attr, suffix, value, upper, doc in switches:
         attrs[attr] = pvproperty(
             value=value,
             name=f"{prefix}{suffix}",
             dtype=ChannelType.LONG,
-            lower_ctrl_limit=-1 if attr == "alarm_readings" else 0,
+            lower_ctrl_limit=0,
             upper_ctrl_limit=upper,
             doc=doc,
         )
-    attrs["alarm_knob"].putter(_put_alarm_knob)
     attrs["glitch_value"] = pvproperty(
         value=1e30,
         name=f"{prefix}{GLITCH_VALUE_SUFFIX}",
@@ -188,4 +179,28 @@ def sim_ioc_class(
 
     offset.putter(put_offset)
     attrs["readback_offset"] = offset
+    _add_alarm_switches(attrs, prefix, len(names))
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
+
+
+def _add_alarm_switches(attrs: dict, prefix: str, d: int) -> None:
+    """The severity hooks (module table of :mod:`~pigp_torch.testing.ioc_pvs`): the severity
+    served, on how many loss-rate reads (-1: every one), on which knob's readback."""
+    alarms = (
+        ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 0, 3,
+         "fault injection: the alarm severity served (0 NO_ALARM .. 3 INVALID)"),
+        ("alarm_readings", ALARM_READINGS_SUFFIX, 0, -1, 1_000_000,
+         "fault injection: the next N reads of the loss rate carry AlarmSeverity; -1 every one"),
+        ("alarm_knob", ALARM_KNOB_SUFFIX, 0, 0, d,
+         "fault injection: k >= 1 serves knob k's readback with AlarmSeverity; 0 none"),
+    )  # fmt: skip
+    for attr, suffix, value, lower, upper, doc in alarms:
+        attrs[attr] = pvproperty(
+            value=value,
+            name=f"{prefix}{suffix}",
+            dtype=ChannelType.LONG,
+            lower_ctrl_limit=lower,
+            upper_ctrl_limit=upper,
+            doc=doc,
+        )
+    attrs["alarm_knob"].putter(_put_alarm_knob)
