@@ -13,7 +13,6 @@ import contextlib
 
 import pytest
 import torch
-import yaml
 
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
@@ -22,22 +21,15 @@ from pigp_torch.machine.errors import SeverityError
 from pigp_torch.testing import ALARM_KNOB_SUFFIX, ALARM_READINGS_SUFFIX, ALARM_SEVERITY_SUFFIX
 
 from .conftest import FAST
+from .test_faults_over_ca import fault_at_read, private_locks, with_optimize  # noqa: F401
+from .test_faults_over_ca import write_config as faults_config
+
+pytestmark = pytest.mark.usefixtures("with_optimize")  # `pigp optimize` registered
 
 KNOBS = ["01G-QSS4", "02G-QSS3", "05G-QSS3"]
 START = [2.5, -1.25, 1.0]  # A: a nonzero start, so that a restore is visible
 MAX_STEP = 0.1  # of the half-range (30 A): 3 A
 NOISE_READS = 5  # the run file's default: readings of the noise measurement at the start
-
-
-@pytest.fixture(autouse=True)
-def private_locks(tmp_path, monkeypatch):
-    monkeypatch.setenv("PIGP_LOCK_DIR", str(tmp_path / "locks"))
-
-
-@pytest.fixture
-def with_optimize(monkeypatch):
-    modules = tuple(dict.fromkeys((*cli.COMMAND_MODULES, "optimize")))
-    monkeypatch.setattr(cli, "COMMAND_MODULES", modules)
 
 
 def alarm_pv(ioc, suffix: str) -> str:
@@ -59,42 +51,10 @@ def alarms(ioc, probe):
         reset()
 
 
-def write_config(tmp_path, ioc, **over) -> str:
-    data = {
-        "machine": {"kind": "epics", "settle_time": 0.1, "timeout": 1.0, "stale_timeout": 1.0},
-        "knobs": {k: [-30.0, 30.0] for k in KNOBS},
-        "objective": {"pv": ioc.loss_rate_pv},
-        "method": {"name": "nelder-mead", "options": {"initial_simplex_size": 0.5}},
-        "budget": 8,
-        "max_step": MAX_STEP,
-        "log": "run.jsonl",
-        "retry_interval": 0.05,
-        "restore_interval": 0.1,
-        "restore_attempts": 2,
-    }
-    data.update(over)
-    path = tmp_path / "run.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
-
-
-@contextlib.contextmanager
-def fault_at_read(n: int, arm):
-    """``arm()`` runs just before the ``n``-th objective read of the run (1-based)."""
-    calls = {"n": 0}
-    real = EpicsMachine.read
-
-    def read(self):
-        calls["n"] += 1
-        if calls["n"] == n:
-            arm()
-        return real(self)
-
-    EpicsMachine.read = read
-    try:
-        yield calls
-    finally:
-        EpicsMachine.read = real
+def write_config(tmp_path, ioc, ring, **over) -> str:
+    """The run file of the fault tests, on the 3 knobs here (±30 A, max_step 0.1: 3 A)."""
+    knobs = {k: [-30.0, 30.0] for k in KNOBS}
+    return faults_config(tmp_path, ioc, ring, knobs=knobs, max_step=MAX_STEP, **over)
 
 
 def final_setpoints(ioc, since: int) -> list[float]:
@@ -138,7 +98,7 @@ def evaluated_values(log) -> list[float]:
 
 @pytest.mark.parametrize("repeats", [1, 2])
 def test_a_2x_glitch_without_stated_noise_is_never_where_the_knobs_end(
-    alarms, probe, tmp_path, capsys, with_optimize, repeats
+    alarms, probe, ring, tmp_path, capsys, repeats
 ):
     """No objective_noise in the run file: the noise is measured at the start (5 readings at
     the initial setting, logged in the start record). A reading of twice the start's level
@@ -153,7 +113,7 @@ def test_a_2x_glitch_without_stated_noise_is_never_where_the_knobs_end(
     glitch = round(2 * y0, 6)
     probe.write(ioc.glitch_value_pv, glitch)
     mark = ioc.n_puts()
-    config = write_config(tmp_path, ioc, restore="best")
+    config = write_config(tmp_path, ioc, ring, restore="best")
     arm = NOISE_READS + 2 + 4  # the measurement, evaluation 1 (read twice), then 4 more reads
     with fault_at_read(arm, lambda: probe.write(ioc.glitch_readings_pv, repeats)):
         with contextlib.ExitStack() as stack:
@@ -173,7 +133,8 @@ def test_a_2x_glitch_without_stated_noise_is_never_where_the_knobs_end(
     if repeats == 1:
         assert glitch in [d["y"] for d in log.discarded]
         assert glitch not in evaluated_values(log)
-        assert end["best"]["y"] < 1.5 * y0
+        best = end["best"] or end["rejected_best"]  # rejected: it read below the start
+        assert best["y"] < 1.5 * y0 and (end["best"] is not None or target == START)
     else:
         assert end["rejected_best"]["y"] == pytest.approx(glitch)
         assert end["best"] is None and target == START
@@ -185,7 +146,7 @@ def test_a_2x_glitch_without_stated_noise_is_never_where_the_knobs_end(
     assert worst_step(ioc, mark) <= 1 + 1e-9
 
 
-def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, tmp_path, capsys, with_optimize):
+def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, ring, tmp_path, capsys):
     """One read of the loss rate is served with severity INVALID and a value close to the
     run's own (it would pass every other check): it is logged as discarded, naming the PV and
     the severity, read again, and is never an evaluation; the run completes."""
@@ -198,7 +159,7 @@ def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, tmp_path, caps
         probe.write(ioc.glitch_readings_pv, 1)
         probe.write(alarm_pv(ioc, ALARM_READINGS_SUFFIX), 1)
 
-    config = write_config(tmp_path, ioc, budget=5)
+    config = write_config(tmp_path, ioc, ring, budget=5)
     with fault_at_read(NOISE_READS + 2 + 1, arm):
         code, captured = run(config, capsys)
     assert code == 0, captured.err
@@ -212,9 +173,7 @@ def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, tmp_path, caps
 
 
 @pytest.mark.parametrize("at", ["start", "mid-run"])
-def test_an_always_invalid_objective_stops_the_run(
-    alarms, probe, tmp_path, capsys, with_optimize, at
-):
+def test_an_always_invalid_objective_stops_the_run(alarms, probe, ring, tmp_path, capsys, at):
     """The loss rate is INVALID on every read (from before the run, or from the 9th read on):
     after the bounded re-reads (read_retries 2: 3 reads) the run stops with exit 1 and one line
     naming the PV and its severity; the knobs are where the run found them (from the start: the
@@ -222,7 +181,7 @@ def test_an_always_invalid_objective_stops_the_run(
     ioc = alarms
     probe.write_many(ioc.setpoint_pvs[:3], START)
     mark = ioc.n_puts()
-    config = write_config(tmp_path, ioc)
+    config = write_config(tmp_path, ioc, ring)
     always = alarm_pv(ioc, ALARM_READINGS_SUFFIX)
     if at == "start":
         probe.write(always, -1)
