@@ -141,7 +141,8 @@ def test_restore_best_never_sets_the_knobs_below_the_start(tmp_path, drop):
 
 def test_a_resume_reuses_the_measured_noise(tmp_path):
     """A resumed run takes the noise its first start measured from the log (its start record
-    says so, with that record's line) and reads the machine only for its evaluations."""
+    says so, with that record's line) and reads the machine only for its evaluations; pigp
+    report names the measurement once."""
     path = tmp_path / "r.jsonl"
     optimize(Scripted(), Walk(BOUNDS, step=0.05), None, 3, log=path, noise_reads=5)
     first = read_log(path)
@@ -152,4 +153,9 @@ def test_a_resume_reuses_the_measured_noise(tmp_path):
     assert log.starts[1]["noise"] == {"sigma": measured["sigma"], "source": "logged",
                                       "line": first.starts[0]["_line"]}  # fmt: skip
     assert m.n_reads == sum(e["reads"] for e in log.evaluations[3:])
+    from pigp_torch.reporting.report import _notices
+
+    noted = [n for n in _notices(log, log.X(), None, ["qs1", "qs2"]) if "reading noise" in n]
+    assert noted == [f"reading noise {measured['sigma']:.4g} mA/min measured at the start from "
+                     "5 readings at the initial setting"]  # fmt: skip
     assert SIGMA < measured["sigma"] < 3 * SIGMA or measured["sigma"] == measured["floor"]
