@@ -1,9 +1,10 @@
 """Tuning script for ``ares-physics`` on the tuning trials (0–49 only; never 50–299).
 
 Runs one method on trials of the shipped trials file with the benchmark's own run loop
-(:func:`pigp_torch.benchmark.ares.run_ares_trial`) and prints, per trial, the final MAE, the
-steps to 40 / 20 µm and the median CPU time of one step (ask + tell; the process's CPU time, one
-thread: the wall time on an idle core, whatever else the machine runs), then the medians.
+(:func:`pigp_torch.machines.ares_ea.benchmark.run_ares_trial`) and prints, per trial, the final
+MAE, the steps to 40 / 20 µm and the median CPU time of one step (ask + tell; the process's CPU
+time, one thread: the wall time on an idle core, whatever else the machine runs), then the
+medians.
 
     python benchmarks/ares_physics_tune.py --trial-ids 0-9 --steps 150 [--noise 5e-6]
 """
@@ -20,14 +21,14 @@ import numpy as np
 import torch
 
 from pigp_torch.benchmark import ares as bench
-from pigp_torch.simulation.ares import AresSegment, load_trials, parse_trial_ids
+from pigp_torch.machines.ares_ea.simulation import AresSegment, load_trials, parse_trial_ids
 
 
 def true_optimum(trial, seg) -> float:
     """The smallest MAE (m) of the true machine over the knob box found by least squares on
     observables - target from 64 Sobol starts (each end point scored by its MAE)."""
+    from pigp_torch.machines.ares_ea.simulation import knob_bounds
     from pigp_torch.optimizers._least_squares import least_squares_in_box
-    from pigp_torch.simulation.ares import knob_bounds
 
     b = knob_bounds()
 

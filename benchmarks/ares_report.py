@@ -16,7 +16,7 @@ Outputs:
 * ``--markdown``: ONE table, a row per condition and method: runs, readings per run, final MAE
   and best MAE (µm, the noise-free beam; median [IQR] over trials), steps to 40 µm and to 20 µm
   (median [IQR], ``inf``: not reached; steps counted from the start, step 0) and the share of
-  trials reaching each (scores of :func:`pigp_torch.benchmark.ares.score_runs`);
+  trials reaching each (scores of :func:`pigp_torch.machines.ares_ea.benchmark.score_runs`);
 * ``--scores-csv``: one row per (condition, method, trial) with those scores (MAE in m);
 * ``--figure``: one panel per condition, the median noise-free MAE of the reading at each step
   with its interquartile band, one line per method (log scale, 40 and 20 µm dotted).
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pigp_torch.benchmark.ares import THRESHOLDS_M, score_runs, summarize_scores
+from pigp_torch.machines.ares_ea.benchmark import THRESHOLDS_M, score_runs, summarize_scores
 
 #: Order of the conditions in tables and figures: noise-free before noisy, the published machine
 #: before the wrong-model cases.

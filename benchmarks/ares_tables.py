@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pigp_torch.benchmark.ares import format_summary, score_runs, summarize_scores
+from pigp_torch.machines.ares_ea.benchmark import format_summary, score_runs, summarize_scores
 
 
 def truncate(table: pd.DataFrame, budget: int) -> pd.DataFrame:

@@ -25,10 +25,15 @@ import time
 import numpy as np
 import torch
 
-from pigp_torch.machine.ares import AresMachine
+from pigp_torch.machines.ares_ea.machine import AresMachine
+from pigp_torch.machines.ares_ea.methods import ares_objective_for
+from pigp_torch.machines.ares_ea.simulation import (
+    AresSegment,
+    load_lattice,
+    load_trials,
+    parse_trial_ids,
+)
 from pigp_torch.methods import METHODS, RunContext
-from pigp_torch.methods.ares import ares_objective_for
-from pigp_torch.simulation.ares import AresSegment, load_lattice, load_trials, parse_trial_ids
 
 CASES = ("right", "incoming-out", "misalign-3x", "k1-10pct")
 

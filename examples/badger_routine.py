@@ -3,10 +3,11 @@ of ``pigp serve-sim`` over Channel Access), through Badger's own loop, knobs set
 
     pigp badger-setup                      # once: Badger's config, pigp_sim, pigp_physics
     pigp serve-sim --port 5064 &           # the simulated ring on 127.0.0.1
-    python examples/badger_routine.py --prior runs/demo/prior.json --ca-port 5064
+    python examples/badger_routine.py --ca-port 5064
 
-The prior is a ``PhysicsPrior`` JSON file with the 13 knobs of the simulated ring, e.g. the one
-``pigp demo`` writes (``runs/demo/prior.json``) or ``pigp build-prior``'s. The routine starts
+The prior is ``builtin:spear3`` (default), the prior of the 13 windings that ships with the
+package, or a ``PhysicsPrior`` JSON file with the same 13 knobs, e.g. the one ``pigp demo``
+writes (``--prior runs/demo/prior.json``) or ``pigp build-prior``'s. The routine starts
 from the knobs it finds, runs ``--evaluations`` readings (the start included), then sets the
 knobs back to where they were (``--end-knobs best``: to the best reading's). Ctrl-C stops it
 early, the knobs set back the same way.
@@ -20,7 +21,11 @@ import sys
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--prior", required=True, help="PhysicsPrior JSON file (13 knobs)")
+    parser.add_argument(
+        "--prior",
+        default="builtin:spear3",
+        help="PhysicsPrior JSON file (13 knobs) or builtin:spear3, the shipped one (default)",
+    )
     parser.add_argument("--ca-port", type=int, default=5064, help="IOC port on 127.0.0.1")
     parser.add_argument("--evaluations", type=int, default=20, help="readings, start included")
     parser.add_argument(
@@ -31,12 +36,14 @@ def main(argv=None) -> int:
 
     from badger.routine import Routine  # Badger reads its config file here
 
+    from pigp_torch.data import BUILTIN_PREFIX, builtin_prior
     from pigp_torch.integrations.badger import register_generator, run_routine
     from pigp_torch.integrations.xopt import vocs_from_prior
     from pigp_torch.prior import PhysicsPrior
 
     register_generator()  # done by `pigp badger-setup`'s start-up hook already; harmless
-    prior = PhysicsPrior.load(args.prior)
+    shipped = args.prior.startswith(BUILTIN_PREFIX)
+    prior = PhysicsPrior.load(builtin_prior(args.prior) if shipped else args.prior)
     routine = Routine(
         name="pigp-physics on the simulated ring",
         vocs=vocs_from_prior(prior, objective="loss_rate"),

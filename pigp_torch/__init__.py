@@ -4,7 +4,9 @@ The package's top level is the method's chain, one package per stage: ``simulati
 model of a storage ring; the real SPEAR3 shipped) -> ``data`` (datasets drawn from it; run logs)
 -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision matrix) -> ``kernels`` and
 ``models`` (GPs, posteriors) -> ``optimizers`` and ``methods`` (ask/tell, the registry) ->
-``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). Around it: ``cli``
+``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). The machine kinds
+(``machines``: the registry ``KINDS``, one folder a kind: the ring, ARES-EA) sit on the chain and
+use it. Around it: ``cli``
 and ``commands``, ``integrations`` (Xopt, Badger), ``benchmark``, ``reporting``, ``testing``;
 ``_utils`` holds the plumbing every stage shares.
 

@@ -9,21 +9,30 @@ unit the modules import each other without a cycle.
 =====  =========================================================================================
 layer  units
 =====  =========================================================================================
-11     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
-10     ``commands`` (one module per ``pigp`` command; the ring options), ``badger_plugins``
+12     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
+11     ``commands`` (one module per ``pigp`` command; the ring options), ``badger_plugins``
        (Badger's entry point)
-9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard)
+10     every machine kind: ``machines.<kind>`` (one folder each: ``machines.ares_ea``,
+       ``machines.ring``); a kind imports the core, never another kind
+9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard),
+       ``machines.contract`` (the contract tests every machine kind inherits)
 8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
 7      ``testing`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)
 3      ``models`` (GP builders, posteriors), ``data`` (datasets, sampling, run logs and locks,
-       lattice decks)
+       lattice decks), ``machines`` (the registry of machine kinds, what a kind brings, the
+       building blocks of a run-file section)
 2      ``kernels``, ``prior``, ``surrogate``, ``simulation``
 0      ``_utils`` (dtype and knob tensors, scipy's L-BFGS-B driven directly, multi-start),
        ``_version``
 =====  =========================================================================================
+
+The core (every unit but the kinds) finds the kinds only through the registry
+(``pigp_torch.machines.KINDS``, which imports each kind's folder by name when first used), never
+by an import; the only exceptions are :data:`ALIASES`, modules at the old paths of moved names
+that only re-export them.
 """
 
 from __future__ import annotations
@@ -37,18 +46,30 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pigp_torch"
 ROOT = "<root>"
 
 LAYERS: dict[str, int] = {
-    **dict.fromkeys(("cli", ROOT), 11),
-    **dict.fromkeys(("commands", "badger_plugins"), 10),
-    **dict.fromkeys(("benchmark", "reporting"), 9),
+    **dict.fromkeys(("cli", ROOT), 12),
+    **dict.fromkeys(("commands", "badger_plugins"), 11),
+    **dict.fromkeys(("benchmark", "reporting", "machines.contract"), 9),
     "loop": 8,
     "testing": 7,
     **dict.fromkeys(("methods", "machine"), 6),
     "integrations": 5,
     "optimizers": 4,
-    **dict.fromkeys(("models", "data"), 3),
+    **dict.fromkeys(("models", "data", "machines"), 3),
     **dict.fromkeys(("kernels", "prior", "surrogate", "simulation"), 2),
     **dict.fromkeys(("_utils", "_version"), 0),
 }
+#: The layer of every machine kind (a folder under ``pigp_torch/machines``).
+KIND_LAYER = 10
+#: Modules at the old paths of names that moved into a kind's folder: pure re-exports (a
+#: docstring and ``from <kind module> import ...``, ``__all__``), allowed to import the kind.
+ALIASES = frozenset(
+    {
+        "pigp_torch.machine.ares",
+        "pigp_torch.benchmark.ares",
+        "pigp_torch.simulation.ares",
+        "pigp_torch.commands.bench_ares",
+    }
+)
 
 
 def _module_name(path: Path) -> str:
@@ -84,8 +105,17 @@ def _imports(path: Path, name: str, known: set[str]) -> set[str]:
 
 
 def _unit(module: str) -> str:
+    """``machines.<kind>`` for a module of a kind's folder, else the top-level unit."""
     parts = module.split(".")
+    if module == "pigp_torch.machines.contract":
+        return "machines.contract"
+    if len(parts) > 2 and parts[1] == "machines" and (PACKAGE / "machines" / parts[2]).is_dir():
+        return f"machines.{parts[2]}"
     return parts[1] if len(parts) > 1 else ROOT
+
+
+def _layer(unit: str) -> int:
+    return LAYERS[unit] if unit in LAYERS else KIND_LAYER
 
 
 def _graph() -> dict[str, set[str]]:
@@ -130,7 +160,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_every_unit_has_a_layer():
-    units = {_unit(m) for m in _modules()}
+    units = {_unit(m) for m in _modules() if _unit(m) not in _kinds()}
     assert units - set(LAYERS) == set(), "add the new unit to LAYERS (and the docstring)"
     assert set(LAYERS) - units == set(), "a unit in LAYERS no longer exists"
 
@@ -142,9 +172,48 @@ def test_units_import_only_lower_layers_and_never_the_root():
             a, b = _unit(module), _unit(target)
             if target == "pigp_torch" and module != "pigp_torch":
                 bad.append(f"{module} imports the package root")
-            elif a != b and LAYERS[b] >= LAYERS[a]:
-                bad.append(f"{module} (layer {LAYERS[a]}) imports {target} (layer {LAYERS[b]})")
+            elif a != b and _layer(b) >= _layer(a) and module not in ALIASES:
+                bad.append(f"{module} (layer {_layer(a)}) imports {target} (layer {_layer(b)})")
     assert bad == []
+
+
+def _kinds() -> set[str]:
+    folders = (PACKAGE / "machines").iterdir()
+    return {f"machines.{p.name}" for p in folders if (p / "__init__.py").is_file()}
+
+
+def test_each_machine_kind_is_a_folder_and_the_core_never_imports_one():
+    """A kind (a folder under ``pigp_torch/machines``) imports the core; no module of the core
+    imports a kind (the registry finds the kinds by name), no kind imports another, and the
+    registry lists exactly the folders."""
+    from pigp_torch.machines import KINDS
+
+    assert _kinds() == {"machines.ares_ea", "machines.ring"}
+    assert {type(k).__module__ for k in KINDS.values()} == {f"pigp_torch.{k}" for k in _kinds()}
+    bad = []
+    for module, targets in _graph().items():
+        a = _unit(module)
+        for target in targets:
+            b = _unit(target)
+            if b in _kinds() and a != b and a not in ("commands", "cli"):
+                if module not in ALIASES:
+                    bad.append(f"{module} imports the kind module {target}")
+    assert bad == []
+
+
+def test_alias_modules_only_re_export_a_kind():
+    """An alias module is a docstring, ``from <one kind module> import (...)`` and ``__all__``
+    naming exactly the imported names, nothing else."""
+    modules = _modules()
+    for name in sorted(ALIASES):
+        body = ast.parse(modules[name].read_text(encoding="utf-8")).body
+        doc, imports, rest = body[0], body[1:-1], body[-1]
+        assert isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant), name
+        assert imports and all(isinstance(n, ast.ImportFrom) for n in imports), name
+        assert all(_unit(n.module) in _kinds() for n in imports), name
+        assert isinstance(rest, ast.Assign) and rest.targets[0].id == "__all__", name
+        exported = {e.value for e in rest.value.elts}
+        assert exported == {a.name for n in imports for a in n.names}, name
 
 
 def test_no_import_cycle_between_modules():
@@ -207,9 +276,10 @@ def test_the_bo_core_parts_import_no_recipe():
 
 
 #: Modules whose functions are held to :data:`MAX_FUNCTION_LINES`: the BO core, the run loop,
-#: the prior, the surrogate and the benchmark's protocol and job runner.
+#: the prior, the surrogate, the benchmark's protocol and job runner, and the machine kinds.
 SHORT_FUNCTIONS = (
     *BO_CORE,
+    "pigp_torch.machines",
     "pigp_torch.loop",
     "pigp_torch.prior",
     "pigp_torch.surrogate",
@@ -256,3 +326,13 @@ def test_the_length_checks_see_a_long_function():
     held = {m for m in _modules() if m.startswith(SHORT_FUNCTIONS)}
     assert {"pigp_torch.loop.core", "pigp_torch.prior.build", "pigp_torch.surrogate.train"} <= held
     assert "pigp_torch.benchmark.protocol" in held
+
+
+def test_a_kinds_modules_are_one_unit_above_the_core():
+    """A module of a kind's folder belongs to that kind (layer 10, above the benchmark and the
+    loop it uses); the registry's modules are a low unit that the methods and the loop use."""
+    assert _unit("pigp_torch.machines.ares_ea.benchmark") == "machines.ares_ea"
+    assert _unit("pigp_torch.machines.ring") == "machines.ring"
+    assert _unit("pigp_torch.machines.kind") == _unit("pigp_torch.machines") == "machines"
+    assert _layer("machines.ring") == KIND_LAYER > _layer("benchmark") > _layer("loop")
+    assert _layer("methods") > _layer("machines") and _layer("commands") > KIND_LAYER

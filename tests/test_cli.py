@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from pigp_torch.cli import build_parser, main
+from pigp_torch.data.tables import read_table
 from pigp_torch.prior import PhysicsPrior, log_excess_hessian
 from pigp_torch.surrogate import load_surrogate
 
@@ -58,10 +59,14 @@ def test_compare_writes_tables_and_figures(tmp_path, capsys):
     argv = ["compare", "--methods", "pigp", "pigp-zero-mean", "nelder-mead", "--seeds", "1"]
     argv += ["--budget-gp", "4", "--budget-direct", "5", "--prior-source", "exact", "-o", str(out)]
     assert main(argv) == 0
-    import pandas as pd
 
-    runs = pd.read_csv(out / "runs.csv")
+    runs = read_table(out / "runs.csv")
     assert len(runs) == 4 + 4 + 5
+    header = (out / "runs.csv").read_text().splitlines()[0].split(",")  # every unit in it
+    assert {"y [mA/min]", "best_f_true [mA/min]", "f_star [mA/min]", "01G-QSS4 [A]"} <= set(header)
+    assert {"step", "method", "gain_fraction", "ask_time_s"} <= set(header)
+    summary = (out / "summary.csv").read_text().splitlines()[0].split(",")
+    assert {"best_f_true_median [mA/min]", "steps_to_95_median [evaluations]"} <= set(summary)
     assert set(runs["method"]) == {"pigp", "pigp-zero-mean", "nelder-mead"}
     for name in ("summary.csv", "fig2b_runs.png", "fig2c_prior_mean.png"):
         assert (out / name).stat().st_size > 0
@@ -74,9 +79,8 @@ def test_demo_small(tmp_path):
     argv = ["demo", "--n", "3000", "--members", "1", "--budget", "4", "--target", "log_excess"]
     argv += ["--center-ensemble", "0"]  # the ensemble (~50 s) is covered by a slow test
     assert main([*argv, "-o", str(out)]) == 0
-    import pandas as pd
 
-    runs = pd.read_csv(out / "runs.csv")
+    runs = read_table(out / "runs.csv")
     assert sorted(set(runs["method"])) == ["ml2", "pigp", "pigp-physics"] and len(runs) == 12
     assert (runs["machine_seed"] == 1).all()
     assert PhysicsPrior.load(out / "prior.json").provenance["surrogate_of"].endswith("=0)")
@@ -153,7 +157,7 @@ def test_demo_cache_gives_the_same_prior_and_runs(tmp_path, capsys):
     assert (tmp_path / "a/prior.json").read_bytes() == (tmp_path / "b/prior.json").read_bytes()
     import pandas as pd
 
-    a, b = (pd.read_csv(tmp_path / x / "runs.csv") for x in "ab")
+    a, b = (read_table(tmp_path / x / "runs.csv") for x in "ab")
     numbers = [c for c in a.columns if not c.endswith("_time_s")]  # timings differ, not numbers
     pd.testing.assert_frame_equal(a[numbers], b[numbers], check_exact=True)
     assert main([*argv, *cache, "--no-cache", "-o", str(tmp_path / "c")]) == 0
@@ -262,7 +266,7 @@ def test_demo_on_two_processes_gives_the_numbers_of_one(tmp_path):
         assert main([*argv, "--workers", str(w), "-o", str(tmp_path / f"w{w}")]) == 0
     one, two = tmp_path / "w1", tmp_path / "w2"
     assert (one / "prior.json").read_bytes() == (two / "prior.json").read_bytes()
-    a, b = pd.read_csv(one / "runs.csv"), pd.read_csv(two / "runs.csv")
+    a, b = read_table(one / "runs.csv"), read_table(two / "runs.csv")
     timing = [c for c in a.columns if c.endswith("_time_s")]
     assert len(a) == 8 and set(timing) == {"ask_time_s", "eval_time_s"}
     pd.testing.assert_frame_equal(a.drop(columns=timing), b.drop(columns=timing))

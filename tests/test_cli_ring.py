@@ -4,6 +4,7 @@ import json
 import shutil
 
 from pigp_torch.cli import main
+from pigp_torch.data.tables import read_table
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation.deck import deck_path
 
@@ -34,9 +35,8 @@ def test_design_deck_file_through_the_cli(tmp_path, capsys):
             "6", "--budget-direct", "6", "--center-ensemble", "0", "--prior-source", "exact",
             "-o", str(out)]  # fmt: skip
     assert main(argv) == 0
-    import pandas as pd
 
-    runs = pd.read_csv(out / "runs.csv")
+    runs = read_table(out / "runs.csv")
     assert set(runs["method"]) == {"pigp", "nelder-mead"} and len(runs) == 12
     assert set(KNOBS.split(",")) <= set(runs.columns)
     assert (runs["gain_fraction"] <= 1 + 1e-9).all()

@@ -20,8 +20,12 @@ def blocks(language: str) -> list[str]:
     return [body for lang, body in FENCE.findall(text) if lang == language]
 
 
+#: Blocks of section (f), run by tests/test_extending_kinds_doc.py: the kind's folder and its use.
+KIND_BLOCKS = ("# file:", "# kind:")
+
+
 def fast_blocks() -> list[str]:
-    return [b for b in blocks("python") if not b.startswith("# slow")]
+    return [b for b in blocks("python") if not b.startswith(("# slow", *KIND_BLOCKS))]
 
 
 def slow_blocks() -> list[str]:
@@ -51,12 +55,12 @@ def user_folder(tmp_path, monkeypatch):
 
 
 def test_the_page_has_every_section_and_its_code():
-    """Sections (a)-(e), each with code; the fast blocks and the slow ones are both there."""
+    """Sections (a)-(f), each with code; the fast blocks and the slow ones are both there."""
     text = DOC.read_text(encoding="utf-8")
-    for section in ("## (a)", "## (b)", "## (c)", "## (d)", "## (e)"):
+    for section in ("## (a)", "## (b)", "## (c)", "## (d)", "## (e)", "## (f)"):
         assert section in text
     assert len(fast_blocks()) >= 8 and len(slow_blocks()) == 1
-    assert len(blocks("yaml")) == 1 and len(blocks("bash")) == 1
+    assert len(blocks("yaml")) == 2 and len(blocks("bash")) == 1
 
 
 def test_the_python_blocks_run(registry):
@@ -77,7 +81,7 @@ def test_the_lattice_ring_runs_in_python_a_run_file_and_the_cli(user_folder, cap
 
     for code in slow_blocks():
         exec(compile(code, str(DOC), "exec"), {"__name__": "extending_docs"})
-    run_file = blocks("yaml")[0]
+    (run_file,) = [b for b in blocks("yaml") if b.startswith("# my_ring.yaml")]
     name = run_file.splitlines()[0].removeprefix("# ").split(":")[0]
     (user_folder / name).write_text(run_file)
     for line in blocks("bash")[0].splitlines():

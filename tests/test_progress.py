@@ -68,7 +68,8 @@ def _dummy_prior() -> PhysicsPrior:
 
 
 def test_a_rejected_prior_reads_as_the_method_working():
-    """The prior check's notice says it is the method working as designed; others pass as is."""
+    """The prior check's notice says what it means and that it is expected; others pass as
+    is."""
     from pigp_torch.loop.progress import notice_text
 
     out = io.StringIO()
@@ -77,7 +78,9 @@ def test_a_rejected_prior_reads_as_the_method_working():
     line({"step": 0, "a": 0.0, "y": 1.0, "notices": [message, "other"]})
     notes = [t for t in out.getvalue().splitlines() if "NOTICE" in t]
     assert notes[0] == (
-        "NOTICE  prior check (the method working as designed): the readings disagree with the "
-        "physics prior after 15 readings: misfit z = 4.1 > 3; stage 2 of 3"
+        "NOTICE  prior check: the readings disagree with the physics prior after 15 readings: "
+        "misfit z = 4.1 > 3; stage 2 of 3. Meaning: this machine differs from the model ring "
+        "the prior was built from, so the method relaxes the prior as that stage says; expected "
+        "when the machine is not the model (as in pigp demo), harmless, the run goes on"
     )
     assert notes[1] == "NOTICE  other" and notice_text("other") == "other"

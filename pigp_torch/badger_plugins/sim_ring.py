@@ -15,6 +15,14 @@ inside the routine's life:
   the first ``set_variables``;
 * end, headless: :func:`pigp_torch.integrations.badger.run_routine` calls :meth:`end_routine`
   when Badger's loop returns or raises (stop, error, Ctrl-C);
+* end, Badger's own loop (``badger.core.run_routine`` in a script, as Badger's examples run it
+  headless, stopped through its active callback): Badger tells the environment nothing, so the
+  routine ends at the first of: the next routine's start on this environment (its knobs are set
+  back before the new start is recorded), the environment's garbage collection
+  (``__del__``), or the end of the process — a hook run at interpreter exit *before* the
+  thread pools shut down (``threading``'s exit hooks run last-registered first, so one
+  registered after caproto's pool is created runs while its put callbacks still work), also
+  after an uncaught exception;
 * end, Badger GUI: the routine runs in a process of its own, which exits when the routine
   ends. There :meth:`end_routine` is registered as a ``multiprocessing`` finalizer (these run
   when the process function returns or raises, before Python shuts its threads down, so the
@@ -23,8 +31,8 @@ inside the routine's life:
   routine then ends the same way), or lets the evaluation under way finish, sets the knobs and
   ends the process.
 
-A restore at interpreter exit (``atexit``) would not work: by then the thread pool of caproto's
-client refuses new work and the puts time out.
+A restore from ``atexit`` would not work: by then the thread pool of caproto's client refuses
+new work and the puts time out (hence the earlier ``threading`` exit hook).
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ import multiprocessing.util
 import os
 import signal
 import threading
+import weakref
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -82,6 +91,7 @@ class SimRingEnvironment(environment.Environment):
     _ending: bool = PrivateAttr(False)
     _in_evaluation: bool = PrivateAttr(False)  # from set_variables to get_observables
     _sigterm: bool = PrivateAttr(False)  # SIGTERM during an evaluation: stop after it
+    _exit_hooked: bool = PrivateAttr(False)  # the process-exit hook is registered
 
     # -- the machine ------------------------------------------------------------------------------
     def _machine(self):
@@ -108,10 +118,42 @@ class SimRingEnvironment(environment.Environment):
 
     # -- the routine's life -----------------------------------------------------------------------
     def begin_routine(self) -> dict[str, float]:
-        """Record the knobs' setpoints now as the routine's start (A); returns them."""
+        """Record the knobs' setpoints now as the routine's start (A); returns them. A routine
+        still open on this environment (Badger's own loop never says when one ends) is ended
+        first: its knobs are set back, then the new start is read."""
+        if self._start is not None and not self._ending:
+            self.end_routine()
         self._start = self._machine().setpoints()
         self._last, self._best, self._ending = None, None, False
+        self._end_at_exit()
         return self.knobs_at_start
+
+    def _end_at_exit(self) -> None:
+        """End the routine when the process ends (once per environment): a ``threading`` exit
+        hook, run before the thread pools of caproto's client shut down. It holds the
+        environment weakly; garbage collection ends the routine through ``__del__``."""
+        if self._exit_hooked:
+            return
+        ref = weakref.ref(self)
+
+        def at_exit() -> None:
+            env = ref()
+            if env is not None:
+                env._end_in_process_exit()
+
+        try:
+            threading._register_atexit(at_exit)
+        except RuntimeError:  # the interpreter is shutting down already
+            return
+        self._exit_hooked = True
+
+    def __del__(self) -> None:
+        """Garbage collection ends an open routine (knobs set back); never raises."""
+        try:
+            if getattr(self, "__pydantic_private__", None) and self._start is not None:
+                self._end_in_process_exit()
+        except Exception:  # the interpreter may be tearing modules down: nothing to tell
+            pass
 
     def end_routine(self) -> dict[str, float] | None:
         """End the routine: set the knobs to ``end_knobs`` (checked, readbacks verified, up to

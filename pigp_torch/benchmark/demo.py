@@ -100,9 +100,50 @@ def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
         torch.set_num_threads(threads)
 
 
-def _train_member(data, seed: int, target: str, progress: bool):
-    """One surrogate network (a job of :func:`~pigp_torch._utils.pool.job_pool`)."""
-    return train_surrogate(data, seed=seed, target=target, progress=progress)
+#: CPU seconds of a process between two progress lines of the surrogate's training.
+PROGRESS_EVERY_S = 5.0
+
+
+class EpochLines:
+    """The ``on_epoch`` of :func:`~pigp_torch.surrogate.train_surrogate` in the demo: a plain
+    line (network k of K, epoch e of E, validation loss, seconds) after the first epoch, then
+    after the first epoch that ends ``every`` s of this process's CPU time (``clock``, default
+    :func:`time.process_time`) or ``wall_every`` s of wall time (``wall_clock``, default
+    :func:`time.perf_counter`; a busy machine) after the last line, and after the last epoch.
+    Plain lines, not a bar: they stay readable between the lines of a run on another process,
+    and in a log file. Picklable (it runs in worker processes too)."""
+
+    def __init__(
+        self,
+        member: int,
+        members: int,
+        every: float = PROGRESS_EVERY_S,
+        wall_every: float = 6 * PROGRESS_EVERY_S,
+        clock=None,
+        wall_clock=None,
+    ) -> None:
+        self.member, self.members, self.every = int(member), int(members), float(every)
+        self.wall_every = float(wall_every)
+        self.clock, self.wall_clock = clock, wall_clock
+        self._last: tuple[float, float] | None = None
+
+    def __call__(self, r: dict) -> None:
+        now = ((self.clock or time.process_time)(), (self.wall_clock or time.perf_counter)())
+        due = self._last is None or r["epoch"] >= r["max_epochs"]
+        cpu, wall = (now[0] - self._last[0], now[1] - self._last[1]) if not due else (0, 0)
+        if not due and cpu < self.every and wall < self.wall_every:
+            return
+        self._last = now
+        print(f"      network {self.member}/{self.members}: epoch {r['epoch']}/{r['max_epochs']}, "
+              f"validation loss {r['val_loss']:.3g} (best {r['best_val_loss']:.3g} at epoch "
+              f"{r['best_epoch']}), {r['elapsed_s']:.0f} s", flush=True)  # fmt: skip
+
+
+def _train_member(data, seed: int, target: str, members: int):
+    """One surrogate network (a job of :func:`~pigp_torch._utils.pool.job_pool`), with a
+    progress line every :data:`PROGRESS_EVERY_S` s of CPU (:class:`EpochLines`)."""
+    lines = EpochLines(seed + 1, members)
+    return train_surrogate(data, seed=seed, target=target, progress=False, on_epoch=lines)
 
 
 def _run_method(spec, machine_seed: int, prior, budget: int):
@@ -139,9 +180,10 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     cache = None if a.no_cache else DemoCache(a.cache_dir or default_cache_dir())
     key = {"model_seed": a.model_seed, "n": a.n, "members": a.members,
            "target": a.target, "noise": 0.04, "sample_seed": 0}  # fmt: skip
+    hit = None if cache is None else cache.load_prior(key)
+    _print_start(a, None if hit is None else cache.path("prior", key))
     model_ring = SPEAR3.build(a.model_seed)
     names = list(model_ring.knob_names)
-    hit = None if cache is None else cache.load_prior(key)
     want_ensemble = bool(a.center_ensemble) and any(
         METHODS[m].uses_center_ensemble for m in a.methods
     )
@@ -152,25 +194,24 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
              for m in a.methods}  # fmt: skip
     with job_pool(a.workers) as pool:
         parallel = not isinstance(pool, InlineExecutor)
-        # a method that needs no prior (ML-II) starts at once, on a spawned process
-        early = [m for m in a.methods if not specs[m].needs_prior]
+        # with a second process, a method that needs no prior (ML-II) starts there at once
+        early = [m for m in a.methods if parallel and not specs[m].needs_prior]
         if early:
-            print(f"[4/4] {', '.join(early)} needs no prior: its run starts now"
-                  + (" (alongside the stages below)" if parallel else ""), flush=True)  # fmt: skip
+            print(f"      {', '.join(early)} needs no prior: its run (stage 4) starts now on a "
+                  "second process, alongside the stages before it", flush=True)  # fmt: skip
         runs = dict(
             zip(early, spread(pool, _method_jobs(a, early, specs, None), set()), strict=True)
         )
         data = None
         if hit is None:
             t0 = time.perf_counter()
-            print(f"[1/4] simulated data of the model ring (error seed {a.model_seed})",
-                  flush=True)  # fmt: skip
             data = generate_dataset(model_ring, a.n, seed=0, progress=True)
             print(f"      {len(data)} samples ({_elapsed(t0)})", flush=True)
             print(f"[2/4] surrogate: {a.members} network(s) on {len(data)} samples"
-                  + (f", on {a.workers} processes" if parallel else ""), flush=True)  # fmt: skip
+                  + (f", on {a.workers} processes" if parallel and not early else ""),
+                  flush=True)  # fmt: skip
         t_train = time.perf_counter()
-        jobs = [(_train_member, (data, k, a.target, not parallel), {})
+        jobs = [(_train_member, (data, k, a.target, a.members), {})
                 for k in range(a.members if hit is None else 0)]  # fmt: skip
         # the caller trains every a.workers-th network (all of them while a spawned process runs
         # an early method); the others and the rings go to the pool
@@ -194,6 +235,16 @@ def _run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     return table, prior
 
 
+def _print_start(a: DemoSettings, cached) -> None:
+    """The first stage's line: stage 1 starts, or stages 1-3 come from the ``cached`` file."""
+    if cached is None:
+        print(f"[1/4] simulated data of the model ring (error seed {a.model_seed}): "
+              f"{a.n} samples", flush=True)  # fmt: skip
+    else:
+        print(f"[1-3/4] physics prior of the surrogate from the cache ({cached}; --no-cache "
+              "recomputes it)", flush=True)  # fmt: skip
+
+
 def _method_jobs(a: DemoSettings, methods, specs, prior) -> list:
     return [(_run_method, (specs[m], a.machine_seed, prior, a.budget), {}) for m in methods]
 
@@ -204,8 +255,8 @@ def _ring_jobs(a: DemoSettings, names, jobs, local, parallel):
     ring_model, seeds = ensemble_plan(
         a.center_ensemble, {"error_seed": a.model_seed}, names, a.machine_seed
     )
-    if parallel:
-        print(f"      and, alongside, the optima of {len(seeds)} ensemble rings", flush=True)
+    print(f"      and the optima of {len(seeds)} ensemble rings (other error seeds) for the "
+          "prior's centre and shape" + (", alongside" if parallel else ""), flush=True)  # fmt: skip
     n_parts = 1 if not parallel else a.workers - (1 if jobs else 0)
     part = -(-len(seeds) // n_parts)
     if not jobs and parallel:
@@ -224,20 +275,23 @@ def _print_machine(a: DemoSettings, model_ring, methods, parallel: bool) -> None
           f"x{g / model_ring.loss_rate_map[1]:.2f} of the model's); a run file reaches it with "
           f"machine: {{kind: sim, error_seed: {a.machine_seed}, loss_map: benchmark}}"
           + (f"; {a.workers} runs at a time" if parallel else ""), flush=True)  # fmt: skip
+    if any(METHODS[m].needs_prior for m in a.methods):
+        print(f"      the prior is the model ring's (error seed {a.model_seed}), not this "
+              "machine's: a NOTICE that the readings disagree with the physics prior is "
+              "expected here (pigp-physics then relaxes its prior and goes on)",
+              flush=True)  # fmt: skip
 
 
 def _surrogate_prior(a, hit, members, model_ring, cache, key, t0):
     """Stages 1-3: the cached prior, or the trained members' ensemble and its prior."""
     if hit is not None:
         prior, reports = hit
-        print(f"[1-3/4] physics prior of the surrogate from the cache ({cache.path('prior', key)}"
-              "; --no-cache recomputes it)", flush=True)  # fmt: skip
         print_reports(reports)
     else:
         trained = [m.result() for m in members]
         reports = [r for _, r in trained]
         print_reports(reports)
-        print(f"      trained ({_elapsed(t0)})", flush=True)
+        print(f"      stage 2 done ({_elapsed(t0)})", flush=True)
         surrogate = SurrogateEnsemble([m for m, _ in trained]).double().eval()
         t1 = time.perf_counter()
         print("[3/4] physics prior: optimum and Hessian of the surrogate", flush=True)

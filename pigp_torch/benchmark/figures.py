@@ -40,8 +40,12 @@ def _draw(ax, df: pd.DataFrame, y: str, labels: dict[str, str] | None = None) ->
         label = (labels or {}).get(method, method)
         ax.plot(mean.index + 1, mean.to_numpy(), color=colour, lw=2.5, label=label)
     if y == "best_f_true" and "f_star" in df.columns:
-        for f_star in df["f_star"].unique():
-            ax.axhline(f_star, color="0.5", lw=0.5, ls=":")
+        optima = df["f_star"].unique()
+        for k, f_star in enumerate(optima):  # one legend entry: the value, or "each machine's"
+            label = (f"true optimum {f_star:.4g} mA/min" if len(optima) == 1
+                     else "true optimum of each machine") if k == 0 else None  # fmt: skip
+            ax.axhline(f_star, color="0.5", lw=0.8 if len(optima) == 1 else 0.5, ls=":",
+                       label=label)  # fmt: skip
     ax.set_xlabel("evaluation")
     ax.set_ylabel(Y_LABELS[y])
     ax.legend(loc="upper left", fontsize="small")

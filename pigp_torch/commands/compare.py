@@ -67,13 +67,16 @@ def format_summary(summary, fraction: int = 95) -> str:
     return "\n".join([*lines, *textwrap.wrap(note, 100)])
 
 
-def write_comparison(df, out: Path, title: str) -> None:
+def write_comparison(df, out: Path, title: str, knob_units: dict[str, str]) -> None:
+    """``runs.csv`` and ``summary.csv`` (headers with units, ``name [unit]``; ``knob_units``:
+    knob name -> unit), the figures and the printed summary of a benchmark table ``df``."""
     from pigp_torch.benchmark import plot_prior_mean, plot_runs, summarize
+    from pigp_torch.data.tables import with_units
 
     out.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out / "runs.csv", index=False)
+    with_units(df, knob_units).to_csv(out / "runs.csv", index=False)
     summary = summarize(df)
-    summary.to_csv(out / "summary.csv")
+    with_units(summary, knob_units).to_csv(out / "summary.csv")
     plot_runs(df, out / "fig2b_runs.png", title=title)
     files = ["runs.csv", "summary.csv", "fig2b_runs.png"]
     if {"pigp", "pigp-zero-mean"} <= set(df["method"]):
@@ -105,12 +108,13 @@ def cmd_compare(args) -> int:
         prior_source=args.prior_source,
         family=args.family,
     )
-    n_knobs = ring.build(args.model_seed).dim  # cached: the model ring was built already
+    model = ring.build(args.model_seed)  # cached: the model ring was built already
+    n_knobs = model.dim
     name = "spear3" if ring.is_spear3 else Path(ring.lattice).stem
     title = f"{name}-{n_knobs}, model seed {args.model_seed}"
     if args.family != "project":
         title += f", {args.family} machines"
-    write_comparison(df, args.out, title)
+    write_comparison(df, args.out, title, dict.fromkeys(model.knob_names, model.knob_units))
     return 0
 
 

@@ -29,7 +29,8 @@ def cmd_demo(args) -> int:
     df, prior = run_demo(settings)
     args.out.mkdir(parents=True, exist_ok=True)
     prior.save(args.out / "prior.json")
-    write_comparison(df, args.out, f"demo: machine seed {args.machine_seed}")
+    units = dict.fromkeys(prior.knob_names, "A")  # the SPEAR3 windings' currents
+    write_comparison(df, args.out, f"demo: machine seed {args.machine_seed}", units)
     return 0
 
 

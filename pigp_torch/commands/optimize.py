@@ -13,7 +13,9 @@ setpoint written.
 
 ``--resume LOG`` continues a logged run: the log's hash chain is verified (an edited log is
 refused, exit 2, naming the first line that does not match; a torn last line is dropped with one
-warning; a log of an older version without a chain resumes with a warning), the optimizer is
+warning; a log of an older version without a chain resumes with a warning where that version
+could have written it, and its restore target, when more than the step limit from the setpoints
+now, only with ``--accept-restore-target``), the optimizer is
 rebuilt from the logged evaluations (:func:`pigp_torch.data.runlog.replay`), the knobs are compared
 with the initial knobs of the run's first start (the restore target) and the last commanded
 setting, and the run goes on up to the budget (which may be raised in the run file; nothing else
@@ -25,8 +27,9 @@ is named, with what a run would do, instead of being refused.
 How the run ended is taken from the end record the loop handed to the run log
 (:attr:`pigp_torch.data.runlog.RunLog.end_record`), written or not: a full log disk stops the run
 (:class:`~pigp_torch.data.runlog.LogWriteError`, the knobs restored by the loop, one line, the
-summary) and never hides that the knobs were not restored (exit 3). Python warnings are printed
-as one plain line each while the command runs.
+summary) and never hides that the knobs were not restored (exit 3). Python warnings, and
+caproto's log records (a reconnection's traceback), are printed as one plain line each while the
+command runs.
 """
 
 from __future__ import annotations
@@ -42,8 +45,10 @@ from pigp_torch.commands.optimize_log import (
     _existing_log,
     _locks,
     _read_resumed,
+    unverified_target,
 )
 from pigp_torch.commands.optimize_output import (
+    caproto_one_line,
     print_plan,
     print_resume_state,
     print_summary,
@@ -85,8 +90,10 @@ EXIT_HELP = """rules:
             logged before it is written; each record carries a sha256 chained to the
             previous one: --resume and pigp report refuse a log edited anywhere (exit 2,
             naming the first line that does not match); a last line cut short by a crash is
-            dropped with one warning; a log of an older version (no chain) still resumes,
-            with a warning that it cannot be verified
+            dropped with one warning; a log of an older version (no chain) resumes, with a
+            warning that it cannot be verified, only where that version could have written
+            every record (else exit 2), and only with --accept-restore-target when its
+            restore target is more than max_step from the setpoints now (else shown, exit 2)
   log disk  a log write that fails (disk full, I/O error) stops the run: the knobs are
             restored, one line says why, the summary is printed; a log whose header could
             not be written is removed (nothing moved)
@@ -97,7 +104,7 @@ exit status:
   0    completed; the knobs restored (or set to the best point with restore: best)
   1    stopped by a safety rule, a machine error, a failed run-log write or another error;
        knobs restored (also: a PV that does not connect, or a run log that cannot be
-       started; nothing moved)
+       started — a full disk, a read-only log folder; nothing moved)
   2    invalid input (run file, a folder or unreadable file given as one, an existing run
        log, a run log that fails its hash chain, arguments); nothing moved
   3    the knobs were NOT restored (whatever ended the run, a full log disk included): the
@@ -148,6 +155,13 @@ def register(sub, bench) -> None:
         help="validate, connect and print the plan; move nothing, write nothing (an existing "
         "run log is named with what a run would do, not refused)",
     )
+    p.add_argument(
+        "--accept-restore-target",
+        action="store_true",
+        help="with --resume of a log without a hash chain (an older version's): restore to its "
+        "logged initial knobs even when they are more than max_step from the setpoints now "
+        "(they cannot be verified; without this flag such a resume is refused, exit 2)",
+    )
     p.add_argument("--quiet", action="store_true", help="no line per evaluation")
     p.add_argument(
         "--dashboard",
@@ -186,7 +200,7 @@ def _plain_warnings():
 
 
 def cmd_optimize(args) -> int:
-    with _plain_warnings():
+    with _plain_warnings(), caproto_one_line():
         return _optimize(args)
 
 
@@ -211,7 +225,12 @@ def _optimize(args) -> int:
         log_path = Path(args.resume)
     else:
         config = load_config(args.config)
-        _check_log_folder(config.log)
+        try:
+            _check_log_folder(config.log)
+        except PermissionError as err:  # a read-only folder: exit 1, as a full disk
+            say(sys.stderr, f"pigp optimize: could not start the run: {err.strerror}; nothing "
+                             "was moved")  # fmt: skip
+            return EXIT_STOPPED
         log_path = config.log
     locks = _locks(config, log_path)
     try:
@@ -256,6 +275,10 @@ def _optimize(args) -> int:
                 say(sys.stderr, f"pigp optimize: could not connect to the machine: {err}")
                 return EXIT_STOPPED
             try:
+                refusal = None if records is None else unverified_target(setup, records)
+                if refusal and not args.dry_run and not args.accept_restore_target:
+                    print_resume_state(setup, records, out)  # the target shown, then refused
+                    raise ValueError(refusal)
                 log_lock = None if args.dry_run else taken[0]
                 return _run(args, setup, records, log_lock)
             finally:
@@ -353,10 +376,19 @@ def _run(args, setup, records, log_lock) -> int:
             out.flush()
     end = log.end_record  # this session's, written or not (never an earlier session's)
     if end is not None and end.get("restored") is False:
-        say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)")
+        say(sys.stderr, "pigp optimize: the knobs were NOT restored (exit status 3)"
+                         + _which_knobs(end))  # fmt: skip
         return EXIT_NOT_RESTORED
     if end is None and log.moved:  # the run ended before its end record: the knobs are unknown
         say(sys.stderr, "pigp optimize: the run ended without an end record after moving the "
                          "knobs: they may NOT be restored (exit status 3)")  # fmt: skip
         return EXIT_NOT_RESTORED
     return code
+
+
+def _which_knobs(end: dict) -> str:
+    """``": at the target: A, B; NOT at the target: C"`` from an end record ("" without)."""
+    at, off = end.get("knobs_at_target"), end.get("knobs_not_at_target")
+    if not isinstance(at, list) or not isinstance(off, list):
+        return ""
+    return f": at the target: {', '.join(at) or 'none'}; NOT at the target: {', '.join(off)}"

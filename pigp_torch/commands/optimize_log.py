@@ -20,7 +20,14 @@ def _locks(config, log_path: Path):
 
 
 def _check_log_folder(path: Path) -> None:
-    """The run log's folder is (or can be made) a writable folder."""
+    """The run log's folder is (or can be made) a writable folder.
+
+    Raises:
+        ValueError: the path is no place for a log (a file where its folder should be, a
+            folder given as the log): invalid input.
+        PermissionError: the folder is not writable (the log cannot be started, as on a full
+            disk).
+    """
     import os
 
     folder = path.parent
@@ -29,7 +36,11 @@ def _check_log_folder(path: Path) -> None:
     if not folder.is_dir():
         raise ValueError(f"the run log {path} cannot be created: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"the run log {path} cannot be created: {folder} is not writable")
+        import errno
+
+        raise PermissionError(  # like a full disk: the log cannot be started (exit 1)
+            errno.EACCES, f"the run log {path} cannot be created: {folder} is not writable"
+        )
     if path.is_dir():
         raise ValueError(f"the run log {path} is a folder; give a file name")
 
@@ -57,3 +68,32 @@ def _read_resumed(path: Path, *, warn_out=None):
         for note in records.warnings:
             say(warn_out, f"warning: {note}")
     return records
+
+
+def unverified_target(setup, records) -> str | None:
+    """Why a log without a hash chain (an older version's) may not restore to its logged
+    initial knobs without confirmation: they cannot be verified, and they differ from the
+    machine's setpoints now by more than the run's step limit (``None``: no chain needed, or
+    within the step limit)."""
+    import torch
+
+    from pigp_torch.loop import effective_max_step
+    from pigp_torch.loop.moves import setpoints_of
+
+    initial = records.initial_knobs
+    if records.chained or initial is None:
+        return None
+    now = setpoints_of(setup.machine)
+    bounds = setup.config.bounds()
+    limit = effective_max_step(setup.machine, bounds, setup.config.machine_max_step())
+    delta = (torch.tensor(initial, dtype=now.dtype) - now).abs()
+    far = delta > (limit if limit is not None else torch.full_like(delta, float("inf")))
+    if not bool(far.any()):
+        return None
+    names = [n for n, f in zip(setup.config.knob_names, far.tolist(), strict=True) if f]
+    return (
+        f"{records.path} has no hash chain (run-log version {records.header.get('version')}): "
+        f"its restore target (the initial knobs above) cannot be verified and is more than "
+        f"max_step from the setpoints now for {', '.join(names)}; refused, nothing was moved "
+        "(check the target, then resume with --accept-restore-target to restore there)"
+    )

@@ -5,13 +5,18 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 from pathlib import Path
 
+from pigp_torch._utils.units import display_unit
 from pigp_torch.loop.config.schema import logged_units as log_units
 
 
-def fmt_knobs(names, values, unit: str = "") -> str:
-    """``name=value, name=value (unit)``: the unit once, at the end."""
+def fmt_knobs(names, values, unit="") -> str:
+    """``name=value, name=value (unit)``: the unit once, at the end; with one unit per knob (a
+    list: knobs of different kinds) ``name=value unit, ...``."""
+    if not isinstance(unit, str):
+        return ", ".join(f"{n}={v:.6g} {u}" for n, v, u in zip(names, values, unit, strict=True))
     text = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, values, strict=True))
     return f"{text} ({unit})" if unit else text
 
@@ -20,7 +25,7 @@ def print_plan(setup, records, out) -> None:
     c = setup.config
     names, bounds = c.knob_names, c.bounds()
     m = c.machine
-    yu, ku = c.objective_unit, c.knob_unit
+    (k, yu), ku = display_unit(c.objective_unit), c.knob_unit  # readings as a person reads them
     if m.kind == "sim":
         ring = f"SPEAR3 {m.optics}" if m.lattice is None else f"lattice {m.lattice}"
         maps = {"model": "the ring's loss-rate map", "benchmark": "the benchmark's loss-rate map"}
@@ -32,7 +37,7 @@ def print_plan(setup, records, out) -> None:
         where = "the shipped trials" if m.trials is None else str(m.trials)
         machine = (
             f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
-            f"screen noise {m.noise:g} m, noise seed {m.seed}; objective "
+            f"screen noise {1e6 * m.noise:g} µm, noise seed {m.seed}; objective "
             f"{getattr(setup.machine, 'objective', '?')})"
         )
     else:
@@ -41,6 +46,10 @@ def print_plan(setup, records, out) -> None:
     from pigp_torch.loop.moves import setpoints_of
 
     now = setpoints_of(setup.machine).tolist()  # setpoints: what a ramp starts from
+    if m.kind not in ("sim", "ares-sim", "epics"):  # another machine kind's simulated machine
+        from pigp_torch.machines import KINDS
+
+        machine = KINDS.by_run_file_kind(m.kind).describe(m, setup.machine)
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)
@@ -60,7 +69,7 @@ def print_plan(setup, records, out) -> None:
             f"{now[i]:>14.4g}{step:>14}{'  ' + units[i] if units else ''}",
             file=out,
         )
-    floor = "none" if c.objective_floor is None else f"{c.objective_floor:g} {yu}"
+    floor = "none" if c.objective_floor is None else f"{k * c.objective_floor:g} {yu}"
     print(
         f"  at the end: restore {c.restore}; read retries {c.read_retries}; objective floor "
         f"{floor}",
@@ -68,7 +77,7 @@ def print_plan(setup, records, out) -> None:
     )
     opts = setup.options()
     rng = opts.objective_range or getattr(setup.machine, "objective_limits", None)
-    rng_text = "none" if rng is None else f"[{rng[0]:g}, {rng[1]:g}]"
+    rng_text = "none" if rng is None else f"[{k * rng[0]:g}, {k * rng[1]:g}] {yu}"
     noise = noise_in_force(setup, records)
     print(f"  readings: objective range {rng_text}; reading noise {noise}", file=out)
     if setup.prior_info:
@@ -89,14 +98,14 @@ def noise_in_force(setup, records) -> str:
     from pigp_torch.loop.noise import NOISE_FLOOR_REL, logged_noise
 
     c, opts = setup.config, setup.options()
-    yu = c.objective_unit
+    k, yu = display_unit(c.objective_unit)
     if opts.noise is not None:
         where = "objective_noise" if c.objective_noise is not None else (
             "the simulator's" if c.machine.kind == "sim" else "the prior's")  # fmt: skip
-        return f"{opts.noise:g} {yu} (stated: {where})"
+        return f"{k * opts.noise:g} {yu} (stated: {where})"
     logged = logged_noise(records) if records is not None else None
     if logged is not None:
-        return f"{logged['sigma']:.4g} {yu} (measured at the run's first start; from the log)"
+        return f"{k * logged['sigma']:.4g} {yu} (measured at the run's first start; from the log)"
     if opts.noise_reads:
         return (
             f"measured at the start: the standard deviation of {opts.noise_reads} readings at "
@@ -138,6 +147,8 @@ def print_summary(path: Path, out, log=None) -> dict | None:
     header = records.header if records is not None else log.header
     names = list(header.get("knob_names"))
     yu, ku = log_units(header)
+    k, yu = display_unit(yu)  # readings as a person reads them (a beam in µm)
+    ku = header.get("knob_units") or ku  # one unit per knob where the machine has them
     say(out, f"status: {end['status']}" + (f" ({end['reason']})" if end.get("reason") else ""))
     if records is not None:
         start = records.starts[-1] if records.starts else {}
@@ -145,19 +156,19 @@ def print_summary(path: Path, out, log=None) -> dict | None:
         say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
         noise = start.get("noise")
         if isinstance(noise, dict) and noise.get("source") == "measured":
-            say(out, f"reading noise: {noise['sigma']:.4g} {yu}, measured at the start from "
-                     f"{noise['n']} readings (mean {noise['mean']:.6g} {yu}, standard deviation "
-                     f"{noise['spread']:.3g} {yu})")  # fmt: skip
+            say(out, f"reading noise: {k * noise['sigma']:.4g} {yu}, measured at the start "
+                     f"from {noise['n']} readings (mean {k * noise['mean']:.6g} {yu}, standard "
+                     f"deviation {k * noise['spread']:.3g} {yu})")  # fmt: skip
     best = end.get("best")
     if best:
         say(
             out,
-            f"best y = {best['y']:.6g} {yu} at evaluation {best['step'] + 1}: "
+            f"best y = {k * best['y']:.6g} {yu} at evaluation {best['step'] + 1}: "
             f"{fmt_knobs(names, best['x'], ku)}",
         )
     rejected = end.get("rejected_best")
     if rejected:
-        text = f"y = {rejected['y']:.6g} {yu} at evaluation {rejected['step'] + 1}"
+        text = f"y = {k * rejected['y']:.6g} {yu} at evaluation {rejected['step'] + 1}"
         say(out, f"best: none (the best reading, {text}, was not confirmed: see the notice)")
     final = end.get("final_knobs")
     if end.get("restored") is False:
@@ -243,3 +254,41 @@ def print_resume_state(setup, records, out) -> None:
         at = max(abs(a - b) for a, b in zip(now, last, strict=True))
         where = "at" if at <= 1e-12 else f"{at:.3g} (largest knob difference) from"
         say(out, f"  the knobs stand {where} the last commanded setting ({intent['purpose']})")
+
+
+#: Longest caproto log line printed (characters; a longer message is cut, with "...").
+CAPROTO_LINE_CHARS = 300
+
+
+@contextlib.contextmanager
+def caproto_one_line(stream=None):
+    """caproto's log records (WARNING and above) as one line each on ``stream`` (default: the
+    ``sys.stderr`` of the moment) while the block runs, instead of Python's last-resort handler
+    with full tracebacks (up to 38 lines for one reconnection): ``caproto <level>: <message>
+    (<exception type>: <exception>)``, cut to :data:`CAPROTO_LINE_CHARS`. Nothing is silenced;
+    the logger's own settings are put back afterwards."""
+    import logging
+
+    class OneLine(logging.Formatter):
+        def format(self, record):
+            text = " ".join(record.getMessage().split())
+            if record.exc_info and record.exc_info[1] is not None:
+                err = record.exc_info[1]
+                text += f" ({type(err).__name__}: {' '.join(str(err).split())})"
+            line = f"caproto {record.levelname.lower()}: {text}"
+            if len(line) > CAPROTO_LINE_CHARS:
+                line = line[: CAPROTO_LINE_CHARS - 3] + "..."
+            return line
+
+    logger = logging.getLogger("caproto")
+    handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(OneLine())
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate

@@ -22,7 +22,9 @@ How Badger 1.6 finds things, and what :func:`setup` (``pigp badger-setup``) does
 Headless routines: :func:`run_routine` runs a Badger ``Routine`` through Badger's own loop
 (``badger.core.run_routine``) and ends it with the environment's :meth:`end_routine
 <pigp_torch.badger_plugins.sim_ring.SimRingEnvironment.end_routine>` (knobs restored), inside
-the routine's life, also on errors and Ctrl-C.
+the routine's life, also on errors and Ctrl-C. A script that calls ``badger.core.run_routine``
+itself is covered too: the environment ends a routine it was never told the end of at the next
+routine's start, at its garbage collection, or when the process ends.
 """
 
 from __future__ import annotations

@@ -74,10 +74,15 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    puts are still acknowledged one by one, each within the step limit), then the result is
    verified: the setpoints (where the machine has ``setpoints()``) equal to the target, and
    every readback within ``readback_tol`` of its range of the target — or of the readback
-   found at the start, for a knob that already read off its setpoint then. A failed attempt is
-   retried, ``restore_attempts`` in all, ``restore_interval`` seconds apart (each ramps from
-   the setpoints then held); the end record says whether the knobs were restored, the target
-   (``restore_target``), the setpoints and readbacks at the end, and the last setpoint the
+   found at the start, for a knob that already read off its setpoint then. When the ramp of
+   every knob together fails (a put the machine refuses, e.g. outside control limits narrowed
+   mid-run, or one never answered) each knob not yet at its target is ramped on its own, so one
+   refused knob does not keep the others from their targets. A failed attempt is retried,
+   ``restore_interval`` seconds apart (each ramps from the setpoints then held), until
+   ``restore_attempts`` were made and ``restore_timeout`` seconds passed since the first; the
+   end record says whether the knobs were restored, the target (``restore_target``), which
+   knobs reached it (``knobs_at_target`` / ``knobs_not_at_target``), the setpoints and
+   readbacks at the end, and the last setpoint the
    machine ACKNOWLEDGED (``last_setpoint``; ``last_intended`` the last one sent). While
    restoring, SIGINT/SIGTERM/SIGHUP are deferred (a second one abandons the restore: reported
    as not restored, with what is known).

@@ -19,7 +19,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils import utc_now as _utc_now
-from pigp_torch.loop.moves import setpoints_of
+from pigp_torch.loop.moves import SETPOINT_TOL, setpoints_of
 from pigp_torch.loop.readings import CONTROL_READS, below_start, check_readings, confirm_best
 from pigp_torch.loop.session import Run
 from pigp_torch.loop.signals import classify
@@ -151,8 +151,32 @@ def _restore(run: Run, rows: list[dict], out: Ending) -> None:
         out.final_setpoints = f"unavailable: {type(err).__name__}: {err}"
 
 
+def _knobs_against_target(run: Run, out: Ending) -> dict:
+    """``{"knobs_at_target": [...], "knobs_not_at_target": [...]}``: a knob is at the restore
+    target when its setpoint read at the end equals it (within ``SETPOINT_TOL`` of the range) and
+    its readback is within ``readback_tol`` of the range of it (or of the readback found at the
+    start, for a target that is the setpoints found); ``{}`` when they could not be read."""
+    sp, rb = out.final_setpoints, out.final_knobs
+    if not isinstance(sp, list) or not isinstance(rb, list):
+        return {}
+    width = run.bounds[1] - run.bounds[0]
+    target = out.target
+    sp, rb = torch.tensor(sp, dtype=DTYPE), torch.tensor(rb, dtype=DTYPE)
+    at = (sp - target).abs() <= SETPOINT_TOL * width
+    near = (rb - target).abs() <= run.opts.readback_tol * width
+    if run.rb_found is not None and torch.equal(target, run.x_found):
+        near |= (rb - run.rb_found).abs() <= run.opts.readback_tol * width
+    ok = (at & near).tolist()
+    return {
+        "knobs_at_target": [n for n, k in zip(run.names, ok, strict=True) if k],
+        "knobs_not_at_target": [n for n, k in zip(run.names, ok, strict=True) if not k],
+    }
+
+
 def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
-    """The end record (a failure to write it is raised only when nothing else failed)."""
+    """The end record (a failure to write it is raised only when nothing else failed, and
+    warned of only when no earlier write failed: that failure is reported already)."""
+    known = getattr(run.log, "write_error", None)
     try:
         end = {"restored_to": out.restored_to, "final_knobs": out.final_knobs}
         end.update(n_evaluations=len(rows), best=out.best)
@@ -162,6 +186,7 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
             end.update(restore_attempts=out.attempts_made)
             if out.target is not None:
                 end["restore_target"] = out.target.tolist()
+                end.update(_knobs_against_target(run, out))
             for key, value in (("control_reading", out.control),
                                ("best_confirmation", out.confirmation),
                                ("rejected_best", out.rejected_best)):  # fmt: skip
@@ -177,8 +202,8 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     except Exception as err:
         if out.error is None and out.restore_error is None:
             raise
-        # stack: here, end_run, optimize, optimize's caller
-        warnings.warn(f"could not write the end record to the run log: {err!r}", stacklevel=4)
+        if known is None:  # stack: here, end_run, optimize, optimize's caller
+            warnings.warn(f"could not write the end record to the run log: {err!r}", stacklevel=4)
     finally:
         if run.own_log:
             run.log.close()

@@ -20,6 +20,8 @@ from pigp_torch.machine.errors import MachineError, ReadbackError
 RAMP_FRACTION = 0.99
 #: A setpoint equals its target within this fraction of the knob's range (round-off only).
 SETPOINT_TOL = 1e-9
+#: Least pause (s) between the restore's attempts beyond ``restore_attempts`` (its window).
+WINDOW_PAUSE_S = 0.2
 
 
 def effective_max_step(machine, bounds: torch.Tensor, max_step) -> torch.Tensor | None:
@@ -229,6 +231,50 @@ def averaged_parts(machine) -> list | None:
     return info.get("values") if isinstance(info, dict) else None
 
 
+def _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors) -> list[str]:
+    """Ramp every knob not at its ``target`` setpoint on its own (the others held where the
+    machine holds them), so that a knob the machine refuses does not stop the others; returns
+    one line per knob that failed (named where the machine names its knobs). Setpoints that
+    cannot be read stop it (raised: no knob can be moved then)."""
+    names = list(getattr(machine, "knob_names", None) or [])
+    width = bounds[1] - bounds[0]
+    failures = []
+    for i in range(target.numel()):
+        name = names[i] if i < len(names) else f"knob {i}"
+        goal = setpoints_of(machine).clone()  # unreadable setpoints: no knob can go (raised)
+        if abs(float(goal[i] - target[i])) <= SETPOINT_TOL * float(width[i]):
+            continue
+        try:
+            goal[i] = target[i]
+            move(machine, goal, bounds, limit, on_set=on_set, on_ack=on_ack,
+                 readback_errors=readback_errors)  # fmt: skip
+        except Exception as err:  # this knob only; a KeyboardInterrupt stops the restore
+            failures.append(f"{name}: {type(err).__name__}: {err}")
+    return failures
+
+
+def _ramp_all_then_each(machine, target, bounds, limit, on_set, on_ack, readback_errors):
+    """One ramp of every knob together; when it fails, :func:`_ramp_each`. Returns ``None``, or
+    the joint ramp's error when the knobs then went one by one.
+
+    Raises:
+        MachineError: a knob could not be ramped on its own either (every one named).
+    """
+    try:
+        move(machine, target, bounds, limit, on_set=on_set, on_ack=on_ack,
+             readback_errors=readback_errors)  # fmt: skip
+        return None
+    except Exception as err:  # every knob on its own: one refusal must not stop the others
+        first = f"{type(err).__name__}: {err}"
+    try:
+        failed = _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors)
+    except Exception as err:
+        raise MachineError(f"{first}; then knob by knob: {type(err).__name__}: {err}") from err
+    if failed:
+        raise MachineError(f"{first}; then knob by knob: " + "; ".join(failed))
+    return f"{first} (then ramped knob by knob)"
+
+
 def restore_knobs(
     machine,
     target: torch.Tensor,
@@ -241,26 +287,33 @@ def restore_knobs(
     on_set,
     on_ack=None,
     reference=None,
+    window: float = 0.0,
 ) -> tuple[BaseException | None, int, list[str]]:
     r"""Ramp ``machine``'s setpoints to ``target`` and verify them and the readbacks
-    (:func:`verify_readback`), up to ``attempts`` times ``interval`` seconds apart (each attempt
-    ramps from the setpoints the machine then holds); a readback that does not follow does not
-    stop a ramp (:func:`move` with ``readback_errors``), it fails the check at the end; a
-    ``KeyboardInterrupt`` (a second signal) abandons it.
+    (:func:`verify_readback`), ``interval`` seconds apart, until ``attempts`` attempts were made
+    and ``window`` seconds (the run's ``restore_timeout``) have passed since the first began —
+    so an IOC that answers again within the window is restored. Each attempt ramps from the
+    setpoints the machine then holds, every knob together; when that fails (a put refused, a
+    put never answered) every knob not yet at its target is ramped on its own, so one knob the
+    machine refuses does not keep the others from their targets. A readback that does not follow
+    does not stop a ramp (:func:`move` with ``readback_errors``), it fails the check at the end;
+    a ``KeyboardInterrupt`` (a second signal) abandons the restore.
 
     Returns:
         ``(error, attempts_made, attempt_errors)``: the last error (``None``: restored), the
         attempts made and one line per failed attempt.
     """
     error, made, errors = None, 0, []
-    for attempt in range(1, attempts + 1):
-        made = attempt
+    began = time.monotonic()
+    while True:
+        made += 1
         readback_errors: list[str] = []
         try:
-            move(
-                machine, target, bounds, limit, on_set=on_set, on_ack=on_ack,
-                readback_errors=readback_errors,
-            )  # fmt: skip
+            joint = _ramp_all_then_each(
+                machine, target, bounds, limit, on_set, on_ack, readback_errors
+            )
+            if joint is not None:  # the end record says the joint ramp failed
+                errors.append(joint)
             verify_readback(machine, target, bounds, readback_tol, reference)
             return None, made, errors
         except KeyboardInterrupt as err:  # a second signal: abandon the restore
@@ -269,10 +322,13 @@ def restore_knobs(
         except Exception as err:  # reported by the caller, never hides the run's error
             error = err
             during = f" (during the ramp: {readback_errors[-1]})" if readback_errors else ""
-            errors.append(f"{type(err).__name__}: {err}{during}")
-            if attempt < attempts and interval > 0:
-                try:
-                    time.sleep(float(interval))
-                except KeyboardInterrupt as err2:
-                    return err2, made, errors
-    return error, made, errors
+            line = f"{type(err).__name__}: {err}{during}"
+            if not errors or errors[-1] != line:  # a window of retries: each error once
+                errors.append(line)
+        pause = float(interval) if made < attempts else max(float(interval), WINDOW_PAUSE_S)
+        if made >= attempts and time.monotonic() - began + pause >= window:
+            return error, made, errors
+        try:
+            time.sleep(pause)
+        except KeyboardInterrupt as err2:
+            return err2, made, errors

@@ -32,6 +32,10 @@ class RunOptions:
             default 1e-3).
         restore_attempts: attempts at the restore (ramp and readback check, >= 1; default 3).
         restore_interval: seconds between those attempts (>= 0; default 1).
+        restore_timeout: the restore's window (s, >= 0): attempts go on (``restore_interval``
+            apart, at least 0.2 s) until ``restore_attempts`` were made *and* this many seconds
+            passed since the first began, so an IOC that stalls or restarts within it is still
+            restored (default 0: ``restore_attempts`` only; run files default to 30 s).
         check_readings: check every reading of a machine against its state (rule 3).
         noise: the stated noise :math:`\sigma` of one reading (objective units, > 0): with it
             a reading far from the run's own readings is re-read and kept only if it repeats
@@ -56,6 +60,7 @@ class RunOptions:
     readback_tol: float = 1e-3
     restore_attempts: int = 3
     restore_interval: float = 1.0
+    restore_timeout: float = 0.0
     check_readings: bool = True
     noise: float | None = None
     objective_range: tuple[float, float] | None = None
@@ -76,6 +81,7 @@ class RunOptions:
                 f"restore_attempts must be an integer >= 1, got {self.restore_attempts}"
             )
         _finite_nonnegative("restore_interval", self.restore_interval)
+        _finite_nonnegative("restore_timeout", self.restore_timeout)
         if self.noise is not None and not (0.0 < float(self.noise) < math.inf):
             raise ValueError(f"noise must be positive and finite or None, got {self.noise}")
         if self.objective_range is not None:
@@ -95,6 +101,7 @@ class RunOptions:
         object.__setattr__(self, "readback_tol", float(self.readback_tol))
         object.__setattr__(self, "restore_attempts", int(self.restore_attempts))
         object.__setattr__(self, "restore_interval", float(self.restore_interval))
+        object.__setattr__(self, "restore_timeout", float(self.restore_timeout))
 
 
 def _finite_nonnegative(name: str, value) -> None:

@@ -24,19 +24,29 @@ from collections.abc import Sequence
 import torch
 
 from pigp_torch._utils import DTYPE
+from pigp_torch._utils.units import display_unit
 
 _PRIOR_REJECTED = "physics prior rejected after "
 
 
 def notice_text(message: str) -> str:
-    """An optimizer's notice as the operator reads it. The prior check's rejection is the method
-    working as designed (the readings disagree with the physics prior, so the model relaxes it
-    stage by stage), not a fault, and says so."""
+    """An optimizer's notice as the operator reads it.
+
+    The prior check's rejection (``pigp-physics``) says in words what it means: the readings
+    do not fit the physics form with the prior's peak (its misfit test, or a relaxed model with
+    more evidence), because the machine is not the model ring the prior was built from; the
+    method then moves to the named stage (a broader peak, or the peak's scale and background,
+    then its eigen-scales and a wider centre, fitted from the readings instead of taken from the
+    prior) and goes on. That is the method adapting as designed, not a fault of the machine or
+    the run, and expected whenever the machine differs from the model (as in ``pigp demo``).
+    Other notices pass unchanged."""
     if message.startswith(_PRIOR_REJECTED):
         rest = message[len(_PRIOR_REJECTED) :]
         return (
-            "prior check (the method working as designed): the readings disagree with the "
-            f"physics prior after {rest}"
+            "prior check: the readings disagree with the physics prior after "
+            f"{rest}. Meaning: this machine differs from the model ring the prior was built "
+            "from, so the method relaxes the prior as that stage says; expected when the "
+            "machine is not the model (as in pigp demo), harmless, the run goes on"
         )
     return message
 
@@ -50,8 +60,9 @@ class ProgressLine:
         maximize: direction of "best" (default: the largest reading).
         unit: knob unit printed after the move (``"A"`` on SPEAR3; default none), or one unit
             per knob (knobs of different kinds, e.g. a linac's k1 in 1/m^2 and angles in rad).
-        objective_unit: unit printed after the reading and the best (``"mA/min"`` for the loss
-            rate; default none).
+        objective_unit: unit of the readings (``"mA/min"`` for the loss rate; default none);
+            they are printed in :func:`~pigp_torch._utils.units.display_unit`'s unit (a beam
+            in m as µm).
         label: text put before the line (e.g. the method), default none.
         out: stream written to (default ``sys.stdout``); a closed stream is ignored.
         clock: seconds, for the time per step (default :func:`time.perf_counter`).
@@ -84,7 +95,8 @@ class ProgressLine:
         self.units = [str(u) for u in unit] if per_knob else [self.unit] * len(self.knob_names)
         if len(self.units) != len(self.knob_names):
             raise ValueError(f"{len(self.units)} knob units for {len(self.knob_names)} knobs")
-        self.objective_unit = str(objective_unit)
+        # readings shown in the unit a person reads (a beam in µm, not m); the best is kept raw
+        self._y_scale, self.objective_unit = display_unit(str(objective_unit))
         self.label = str(label)
         self.out = out
         self._clock = clock
@@ -121,9 +133,10 @@ class ProgressLine:
         self.previous = x
         head = f"{self.label}  " if self.label else ""
         yu = f" {self.objective_unit}" if self.objective_unit else ""
+        k = self._y_scale
         return (
-            f"{head}evaluation {step + 1:>4}/{self.budget}  y = {y:.6g}{yu}  best = "
-            f"{self.best:.6g}{yu}  {move}  {dt:.2f} s/step"
+            f"{head}evaluation {step + 1:>4}/{self.budget}  y = {k * y:.6g}{yu}  best = "
+            f"{k * self.best:.6g}{yu}  {move}  {dt:.2f} s/step"
         )
 
     def __call__(self, row: dict) -> None:

@@ -70,13 +70,15 @@ class Run:
         """Before part ``k`` of ``n`` of a move is written: its intent record, then remember it."""
         sent = self.sent
         if self.log is not None:
+            known = getattr(self.log, "write_error", None)  # a failed write already reported
             try:
                 self.log.log_intent(x, purpose=sent["purpose"], step=sent["step"], part=k, parts=n)
             except Exception as err:
                 if not sent["purpose"].startswith("restore"):
                     raise  # no move of a run without its intent on disk
                 # a restore goes on even when the log cannot be written (disk full)
-                warnings.warn(f"could not log the restore's intent: {err!r}", stacklevel=2)
+                if known is None:
+                    warnings.warn(f"could not log the restore's intent: {err!r}", stacklevel=2)
         sent["last"] = x.tolist()
 
     def on_ack(self, x: torch.Tensor) -> None:
@@ -128,6 +130,7 @@ class Run:
             self.limit,
             attempts=opts.restore_attempts,
             interval=opts.restore_interval,
+            window=opts.restore_timeout,
             readback_tol=opts.readback_tol,
             on_set=self.on_set,
             on_ack=self.on_ack,

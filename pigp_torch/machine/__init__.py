@@ -8,7 +8,7 @@ from pigp_torch.machine.base import (
     ramp,
 )
 from pigp_torch.machine.epics import EpicsMachine
-from pigp_torch.machine.errors import MachineError, ReadbackError, ReadError
+from pigp_torch.machine.errors import MachineError, PutRefused, ReadbackError, ReadError
 from pigp_torch.machine.simulated import SimulatedMachine
 
 __all__ = [
@@ -16,6 +16,7 @@ __all__ = [
     "GuardedMachine",
     "Machine",
     "MachineError",
+    "PutRefused",
     "ReadError",
     "ReadbackError",
     "SimulatedMachine",

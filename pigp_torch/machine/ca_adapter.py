@@ -11,10 +11,11 @@ the small adapter :class:`CaprotoAdapter` (connect, read many, read with timesta
 limits, write many, close, a disconnection counter), named by the class attribute
 ``EpicsMachine._adapter_class``, so that another client (pyepics; pvAccess:
 :class:`pigp_torch.machine.pva.PvaMachine`) plugs in without touching :class:`EpicsMachine`.
-Limitation of caproto's client: a put that the server refuses (``ECA_PUTFAIL``, e.g. outside
-the IOC's control limits) is not reported as such; it shows as a put completion that never
-arrives and is reported here as a timeout (the other puts of that set may have been made; the
-loop then restores the initial knobs).
+A put the IOC refuses (``ECA_PUTFAIL``: a value outside its control limits DRVL/DRVH, a record
+that rejects it) comes back as an ``ErrorResponse``, which caproto's threading client drops (the
+put would look like one never answered); :func:`watch_refusals` hands it to the put's callback,
+so the refusal is reported as such (:class:`~pigp_torch.machine.errors.PutRefused`, naming the
+PVs and the IOC's reason) at once, while the other puts of that set complete.
 """
 
 from __future__ import annotations
@@ -26,7 +27,46 @@ import time
 
 import torch
 
-from pigp_torch.machine.errors import MachineError
+from pigp_torch.machine.errors import MachineError, PutRefused
+
+#: Marks the put callbacks of this module: :func:`watch_refusals` answers only those.
+_REFUSAL_AWARE = "_pigp_refusal_aware"
+
+
+def watch_refusals(circuit_manager) -> None:
+    """Let the puts of :meth:`CaprotoAdapter.write_many` on ``circuit_manager`` (a caproto
+    ``VirtualCircuitManager``) hear the IOC's refusal (idempotent per circuit).
+
+    caproto's threading client processes an ``ErrorResponse`` to a ``WriteNotifyRequest`` (the
+    server's ``ECA_PUTFAIL``) without telling the request's owner. This wraps the command
+    processing of the manager's ``circuit`` (caproto's protocol state machine): such a response
+    whose ``ioid`` belongs to a put of ours (its callback marked :data:`_REFUSAL_AWARE`, its
+    deadline not passed) is handed to that callback, as a completion would be; every command
+    still goes through caproto's own processing.
+    """
+    circuit = circuit_manager.circuit
+    if getattr(circuit, "_pigp_watching", False):
+        return
+    from caproto import ErrorResponse, WriteNotifyRequest
+
+    process = circuit.process_command
+
+    def process_command(command):
+        if isinstance(command, ErrorResponse):
+            request = command.original_request
+            info = None
+            if request.command == WriteNotifyRequest.ID:
+                info = circuit_manager.ioids.get(request.parameter2)  # a put's ioid
+            callback = None if info is None else info.get("callback")
+            if getattr(callback, _REFUSAL_AWARE, False):
+                circuit_manager.ioids.pop(request.parameter2, None)
+                deadline = info.get("deadline")
+                if deadline is None or time.monotonic() <= deadline:
+                    callback(command)
+        return process(command)
+
+    circuit.process_command = process_command
+    circuit._pigp_watching = True
 
 
 class CaprotoAdapter:
@@ -104,7 +144,7 @@ class CaprotoAdapter:
                 late = [names[i] for i in sorted(pending)]
             raise MachineError(
                 f"no answer to {what} {late} within {timeout:.3g} s "
-                "(IOC down, channel disconnected, or the put refused by the IOC)"
+                "(IOC down or channel disconnected; a refusal is reported as such)"
             )
         return results
 
@@ -194,18 +234,28 @@ class CaprotoAdapter:
         (also when others never complete)."""
         values = [float(v) for v in values]
 
+        from caproto import ErrorResponse
+
         def start(i, pv, cb, t):
             def done(response, cb=cb, i=i):
                 if on_ack is not None and response.status.success:
                     on_ack(i)
                 cb(response)
 
+            setattr(done, _REFUSAL_AWARE, True)
+            pv.wait_for_connection(timeout=t)
+            watch_refusals(pv.circuit_manager)
             pv.write([values[i]], wait=False, callback=done, timeout=t, notify=True)
 
         responses = self._wait_all(names, start, "put", timeout)
-        failed = [n for n, r in zip(names, responses, strict=True) if not r.status.success]
+        failed = {n: r for n, r in zip(names, responses, strict=True) if not r.status.success}
         if failed:
-            raise MachineError(f"puts to {failed} completed with an error status")
+            detail = "; ".join(
+                f"{n}: {r.status.name}"
+                + (f" ({_reason(r)})" if isinstance(r, ErrorResponse) and _reason(r) else "")
+                for n, r in failed.items()
+            )
+            raise PutRefused(f"the IOC refused the put(s) to {detail}", list(failed))
 
     def close(self) -> None:
         """Disconnect the context if this adapter created it (idempotent), and release its
@@ -230,6 +280,12 @@ class CaprotoAdapter:
                         thread_owner.selector.close()
         self.context = None
         self._pvs = {}
+
+
+def _reason(response) -> str:
+    """The IOC's one-line reason in an ``ErrorResponse`` (its error message, NULs removed)."""
+    text = bytes(response.error_message).split(b"\0", 1)[0].decode("latin-1").strip()
+    return " ".join(text.split())
 
 
 def refuse_outside_control_limits(names, bounds: torch.Tensor, limits) -> None:

@@ -11,8 +11,9 @@ Channel Access (CA), so :func:`pigp_torch.optimize` drives a control system exac
    :math:`\ell \le x \le h` and, with ``max_step``, :math:`|x - x_\mathrm{sp}| \le m` per knob,
    where :math:`x_\mathrm{sp}` are the *setpoint* PVs read just before — the setpoints the IOC
    holds, never the readbacks, so a readback offset or a stuck readback cannot widen a step);
-2. all setpoints are written in parallel with put-completion (``WriteNotify``) and every
-   completion must arrive within ``timeout``; each completed put updates
+2. the setpoints that change are written in parallel with put-completion (``WriteNotify``)
+   and every completion must arrive within ``timeout`` (a put the IOC refuses raises
+   :class:`~pigp_torch.machine.errors.PutRefused` naming it); each completed put updates
    :attr:`EpicsMachine.last_acknowledged` (per knob), so after a failure it holds what the IOC
    really received;
 3. after ``settle_time`` the readbacks are polled (every 50 ms, for at most ``timeout``) until
@@ -30,10 +31,9 @@ every ``stale_poll`` seconds, for at most ``stale_timeout`` seconds, then
 :class:`StaleReadingError` (a ``ReadError``: a frozen objective PV never yields a reading).
 :attr:`EpicsMachine.last_reading` describes the last read (timestamps, polls of stale values).
 A reading that is NaN/inf, times out or finds the channel disconnected is retried, up to
-``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. *Severity:*
-a reading (objective, readback, observable) whose alarm severity is ``INVALID`` (or ``MAJOR``,
-with ``refuse_severity="MAJOR"``) is not valid: a :class:`SeverityError` naming the PV (read
-again like any invalid reading); a readback of that severity is not yet at its setpoint.
+``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. A reading
+(objective, readback, observable) of alarm severity ``refuse_severity`` (``INVALID``) or worse
+is not valid (:class:`SeverityError`, naming the PV; a readback: not yet at its setpoint).
 **get** returns the knob readbacks read over CA at that moment (never a cached value);
 :meth:`setpoints` the setpoint PVs likewise. :attr:`EpicsMachine.objective_limits` is the
 objective PV's range (``DRVL``/``DRVH``, else ``LOPR``/``HOPR``; ``None`` where it has neither),
@@ -110,9 +110,8 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
             beam numbers), read once after the objective (default ``None``: none).
         observable_units: ``{name: unit}`` for every name of ``observable_pvs`` (default:
             ``""`` each).
-        refuse_severity: ``"INVALID"`` (default) or ``"MAJOR"``: a reading of the objective, a
-            readback or an observable with this alarm severity or worse is not valid
-            (:class:`~pigp_torch.machine.errors.SeverityError`, read again).
+        refuse_severity: ``"INVALID"`` (default) or ``"MAJOR"``: the alarm severity from
+            which a reading is not valid (:class:`~pigp_torch.machine.errors.SeverityError`).
 
     Raises:
         ValueError: inconsistent names/bounds/options, readbacks outside the bounds at start, or
@@ -344,13 +343,21 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         super().set(x)
 
     def _apply(self, x: torch.Tensor) -> None:
-        """Write the setpoints, wait ``settle_time``, poll the readbacks until they match."""
+        """Write the setpoints that change (those equal to the setpoints read just before are
+        not put again: a knob the IOC would now refuse, e.g. outside narrowed control limits,
+        does not block the others), wait ``settle_time``, poll the readbacks until they match."""
         target = x.tolist()
+        held = self._x.tolist()
+        changed = [i for i in range(len(target)) if target[i] != held[i]]
 
-        def on_ack(i: int) -> None:  # a put completion arrived: the IOC holds target[i]
-            self._acknowledged[i] = target[i]
+        def on_ack(k: int) -> None:  # a put completion arrived: the IOC holds that target
+            self._acknowledged[changed[k]] = target[changed[k]]
 
-        self._ca.write_many(self.setpoint_pvs, target, self.timeout, on_ack=on_ack)
+        if changed:
+            self._ca.write_many(
+                [self.setpoint_pvs[i] for i in changed], [target[i] for i in changed],
+                self.timeout, on_ack=on_ack,
+            )  # fmt: skip
         if self.settle_time > 0:
             time.sleep(self.settle_time)
         deadline = time.monotonic() + self.timeout

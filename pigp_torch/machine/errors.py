@@ -20,6 +20,19 @@ class ReadbackError(MachineError):
     """A knob's readback did not reach its setpoint within the tolerance and time allowed."""
 
 
+class PutRefused(MachineError):
+    """The control system refused a put (e.g. a value outside the IOC's control limits
+    DRVL/DRVH): the message names the PVs and the IOC's reason.
+
+    Attributes:
+        pvs: the PV names whose puts were refused.
+    """
+
+    def __init__(self, message: str, pvs=()) -> None:
+        super().__init__(message)
+        self.pvs = list(pvs)
+
+
 #: EPICS alarm severities by value (``dbr_time`` ``severity``; pvAccess ``alarm.severity``).
 SEVERITIES = ("NO_ALARM", "MINOR", "MAJOR", "INVALID")
 

@@ -2,7 +2,8 @@ r"""The methods, one registry: every optimizer of ``pigp optimize``, the benchma
 
 :data:`METHODS` maps a name to a :class:`MethodSpec` (builder, budget class, options); each
 builder lives in the module of its family and takes a :class:`RunContext`. A new optimizer is
-one module with its builder and one :func:`register` call below.
+one module with its builder and one :func:`register` call below (a machine kind's own methods:
+in the kind's folder).
 
 * ``pigp``: PI-GP BayesOpt, kernel (``kernel``: rbf/rq), mean (``mean``: f_inf/zero/float) and
   noise from the prior; BayesOpt options over :data:`BO_DEFAULTS` (:mod:`~pigp_torch.methods.gp`).
@@ -15,9 +16,11 @@ one module with its builder and one :func:`register` call below.
 * ``nelder-mead``, ``rcds``: direct methods (:mod:`~pigp_torch.methods.direct`).
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
-* ``published-bo``, ``published-nm``: the published recipes of the ARES-EA linac task, and
-  ``ares-physics``, its model's unknowns fitted online (:mod:`~pigp_torch.methods.ares`; in run
-  files on the simulated linac, ``machine: {kind: ares-sim}``).
+* the methods of each machine kind (:data:`pigp_torch.machines.KINDS`, registered by
+  :meth:`~pigp_torch.machines.MachineKind.register_methods`): ``published-bo``, ``published-nm``,
+  the published recipes of the ARES-EA linac task, and ``ares-physics``, its model's unknowns
+  fitted online (:mod:`pigp_torch.machines.ares_ea.methods`; in run files on the simulated linac,
+  ``machine: {kind: ares-sim}``).
 * benchmark variants (not in run files): ``pigp-zero-mean``, ``pigp`` with a zero prior mean
   (Fig. 2c); ``pigp-physics-box``, ``pigp-physics`` with what the model ring alone gives (its own
   shape and the isotropic box prior on the centre, 1 half-range; no error ensemble).
@@ -26,7 +29,7 @@ A further variant is one entry: ``register(METHODS["pigp"].with_options(name="pi
 kernel="rq"))``.
 """
 
-from pigp_torch.methods.ares import build_ares_physics, build_published_bo, build_published_nm
+from pigp_torch.machines import KINDS
 from pigp_torch.methods.direct import build_nelder_mead, build_rcds
 from pigp_torch.methods.fast import build_pigp_fast
 from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp
@@ -45,10 +48,7 @@ from pigp_torch.methods.xopt import TRAVEL_FRACTION, build_xopt_pigp, build_xopt
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
-from pigp_torch.optimizers.ares_published import PublishedAresBO
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
-from pigp_torch.optimizers.model_check import CheckedModelOptimizer
-from pigp_torch.optimizers.model_fit import FittedModelOptimizer
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 
 _BO = {"forwards_to": (BayesOpt,), "fixed": ("model", "seed")}
@@ -106,32 +106,9 @@ register(
     MethodSpec("xopt-ucb-travel", build_xopt_ucb, "gp", {"max_travel_distances": TRAVEL_FRACTION})
 )
 register(MethodSpec("xopt-pigp", build_xopt_pigp, "gp"))
-# ARES-EA (linac, screen): the published recipes (pigp_torch.methods.ares)
-# (run files: on machine kind ares-sim only, pigp_torch.loop.run.ares)
-_ARES = {"machine": "ares-ea", "run_file": True}
-register(
-    MethodSpec(
-        "published-bo",
-        build_published_bo,
-        "gp",
-        forwards_to=(PublishedAresBO,),
-        fixed=("x0", "seed"),
-        **_ARES,
-    )
-)
-register(
-    MethodSpec("published-nm", build_published_nm, "direct", forwards_to=(NelderMead,), **_ARES)
-)
-register(
-    MethodSpec(
-        "ares-physics",
-        build_ares_physics,
-        "gp",
-        forwards_to=(CheckedModelOptimizer, FittedModelOptimizer),
-        fixed=("model", "goal", "theta_center", "theta_half_width", "residual", "seed"),
-        **_ARES,
-    )
-)
+# the methods of each machine kind (ARES-EA: published-bo, published-nm, ares-physics)
+for _kind in KINDS.values():
+    _kind.register_methods(register)
 
 __all__ = [
     "BO_DEFAULTS",

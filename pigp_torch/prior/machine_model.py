@@ -48,6 +48,9 @@ class MachineModel:
         goal: ``N x m -> N`` values to minimize (units of the goal: :attr:`goal_unit`).
         residual: optional ``N x m -> N x r`` residuals, zero at the goal's optimum.
         goal_unit: the goal's unit (default the first observable's unit).
+        goal_background: optional ``P -> float``, the goal far from the optimum
+            :math:`g_\infty(\theta)` where the model knows it (a ring's loss-rate background);
+            default ``None``: :func:`prior_from_machine_model` takes the largest goal it samples.
 
     Raises:
         ValueError: sizes that do not agree, non-positive half widths, bounds with lower >=
@@ -68,6 +71,7 @@ class MachineModel:
     goal: Callable[[Tensor], Tensor]
     residual: Callable[[Tensor], Tensor] | None = None
     goal_unit: str | None = None
+    goal_background: Callable[[Tensor], float] | None = None
 
     def __post_init__(self) -> None:
         self.knob_names = list(self.knob_names)
@@ -151,7 +155,8 @@ def prior_from_machine_model(
         noise: the goal's measurement noise standard deviation (goal units).
         n_ensemble: draws of the unknowns for ``center_cov`` (default 0: none).
         seed: seed of the draws and of the searches' Sobol points.
-        goal_background: :math:`g_\infty` (goal units); default the largest goal over the
+        goal_background: :math:`g_\infty` (goal units); default the model's
+            :attr:`MachineModel.goal_background` at ``theta``, else the largest goal over the
             searches' Sobol samples of the box (the goal far from the optimum).
         n_starts, n_samples: the optimum search's starts and samples
             (:func:`~pigp_torch.prior.prior_from_model`).
@@ -168,6 +173,8 @@ def prior_from_machine_model(
 
     theta0 = model.unknown_center if theta is None else torch.as_tensor(theta, dtype=DTYPE)
     b = model.bounds
+    if goal_background is None and model.goal_background is not None:
+        goal_background = model.goal_background(theta0)
     if goal_background is None:
         goal_background = _largest_goal(model, theta0, seed, n_samples)
     g_inf = float(goal_background)

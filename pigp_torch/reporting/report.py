@@ -42,7 +42,12 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config.schema import logged_units
-from pigp_torch.reporting.figures import draw_run, plot_compare, plot_run  # noqa: F401
+from pigp_torch.reporting.figures import (  # noqa: F401
+    draw_run,
+    in_display_units,
+    plot_compare,
+    plot_run,
+)
 
 
 def _load_run_config(records):
@@ -141,6 +146,7 @@ def run_report(path: str | Path, *, noise: float | None = None, fit: bool = True
         "method": h.get("method", "?"),
         "knob_names": names,
         "unit": unit,
+        "knob_units": h.get("knob_units"),  # one per knob where the machine has them
         "objective_unit": objective_unit,
         "optimum": optimum,
         "bounds": bounds,
@@ -211,7 +217,9 @@ def compare_report(folder: str | Path) -> dict:
     csv = folder / "runs.csv"
     if not csv.is_file():
         raise FileNotFoundError(f"{folder} has no runs.csv (not a pigp compare folder)")
-    df = pd.read_csv(csv)
+    from pigp_torch.data.tables import read_table
+
+    df = read_table(csv)  # the plain column names (the file's headers carry units)
     notes = []
     summary = folder / "summary.csv"
     if summary.is_file():
@@ -268,7 +276,9 @@ def write_report(
 
 
 def _summary(data: dict) -> list[str]:
-    """The page's text lines: best reading (and true value), true and fitted optimum, with units."""
+    """The page's text lines: best reading (and true value), true and fitted optimum, with units
+    (readings in the unit a person reads, :func:`in_display_units`)."""
+    data = in_display_units(data)
     Y = data["Y"]
     yu = data.get("objective_unit") or ""
     ys = f" {yu}" if yu else ""
@@ -297,6 +307,10 @@ def _summary(data: dict) -> list[str]:
     fit = data["fit"]
     if fit is not None and math.isfinite(fit["value"]):
         lines.append(f"fitted optimum {fit['value']:.6g} ± {2 * fit['value_std']:.3g}{ys} (2σ)")
-    if data.get("unit"):
+    per_knob = data.get("knob_units")
+    if per_knob and len(per_knob) == len(data["knob_names"]):
+        units = ", ".join(f"{n} in {u}" for n, u in zip(data["knob_names"], per_knob, strict=True))
+        lines.append(f"knob settings: {units}; the objective in {yu or 'its own unit'}")
+    elif data.get("unit"):
         lines.append(f"knob settings in {data['unit']}; the objective in {yu or 'its own unit'}")
     return lines

@@ -16,6 +16,7 @@ error seeds); :func:`center_covariance` the optima's second moment about the nom
 from __future__ import annotations
 
 import dataclasses
+import time
 import warnings
 from typing import NamedTuple
 
@@ -199,7 +200,8 @@ def ring_optima(
 
     Args:
         seeds: error seeds; model, knobs, optics, reach: as :func:`ensemble_optima`.
-        progress: print one line per ring, numbered ``first_index + k + 1`` of ``total``
+        progress: print one line per ring (its optimum, seconds since the first ring began),
+            numbered ``first_index + k + 1`` of ``total``
             (default ``len(seeds)``): a part of a larger ensemble numbers its rings in it.
 
     Returns:
@@ -213,6 +215,7 @@ def ring_optima(
         raise ValueError(f"reach must be >= 1, got {reach}")
     total = len(seeds) if total is None else int(total)
     out = []
+    t0 = time.perf_counter()
     for k, s in enumerate(int(s) for s in seeds):
         label = f"  ensemble ring {first_index + k + 1}/{total} (seed {s})"
         try:
@@ -229,8 +232,8 @@ def ring_optima(
         out.append((s, x, B, None))
         if progress:
             print(f"{label}: optimum {f:.3f} mA/min, "
-                  f"max |knob| {float((x.abs() / sim.bounds[1]).max()):.2f} of the limit",
-                  flush=True)  # fmt: skip
+                  f"max |knob| {float((x.abs() / sim.bounds[1]).max()):.2f} of the limit "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)  # fmt: skip
     return out
 
 

@@ -6,6 +6,7 @@ import copy
 import math
 import time
 import warnings
+from collections.abc import Callable
 
 import torch
 
@@ -128,6 +129,7 @@ def train_surrogate(
     dtype: torch.dtype = torch.float32,
     num_threads: int | None = TRAIN_DEFAULTS["num_threads"],
     progress: bool = True,
+    on_epoch: Callable[[dict], None] | None = None,
 ) -> tuple[SurrogateMLP, dict]:
     r"""Fit a :class:`SurrogateMLP` to loss-rate samples (validation split, early stopping).
 
@@ -148,23 +150,22 @@ def train_surrogate(
         f_inf: background loss rate :math:`f_\infty`; default: ``data.metadata["f_inf"]``.
         bounds: ``2 x d`` knob bounds; default: ``data.metadata["bounds"]``.
         widths, activation, target: architecture (see :class:`SurrogateMLP`).
-        val_fraction: fraction of samples held out for validation (in ``(0, 1)``).
-        batch_size, weight_decay: minibatch size; AdamW decoupled weight decay.
+        val_fraction, batch_size: held-out fraction (in ``(0, 1)``); minibatch size.
+        weight_decay: AdamW decoupled weight decay.
         lr, lr_min_factor: peak learning rate; final/peak ratio of the cosine decay.
         max_epochs, patience: maximum number of epochs; early-stopping patience (epochs).
         time_limit: optional wall-clock limit in seconds for the epoch loop.
         excess_floor: floor of :math:`y - f_\infty` (default :math:`10^{-3}` times the median
             positive excess); samples below it (e.g. :math:`y \le f_\infty`) are clamped to it,
             left out of :math:`m, s` and counted in the report (a warning says so).
-        near_fraction: fraction of validation points with the highest loss rate that form the
-            "near-optimum" subset of the report.
+        near_fraction: share of the highest-loss validation points in the report's near-optimum.
         seed: seeds the initialization, the split and the shuffling (same seed, same weights).
         device: ``"cpu"`` or ``"cuda"``; training runs there, the returned model is on CPU.
-        dtype: training precision (``torch.float32`` default; float64 is slower and, for
-            these networks, does not change the prior's Hessian beyond its own noise).
-        num_threads: CPU threads for the fit (restored afterwards); ``None`` keeps torch's
-            setting (a network this small gains nothing from intra-op parallelism).
+        dtype: training precision (default float32; float64: slower, same Hessian within noise).
+        num_threads: CPU threads of the fit (restored afterwards); ``None``: torch's setting.
         progress: show a tqdm progress bar.
+        on_epoch: called after each epoch with ``{"epoch", "max_epochs", "train_loss",
+            "val_loss", "best_val_loss", "best_epoch", "elapsed_s"}`` (e.g. progress lines).
 
     Returns:
         ``(model, report)``: the model in ``float64`` eval mode on CPU, and a dict with the
@@ -210,6 +211,7 @@ def _train(
     dtype,
     num_threads,
     progress,
+    on_epoch,
 ) -> tuple[SurrogateMLP, dict]:
     x, y, f_inf, b = _unpack(data, f_inf, bounds)
     if target not in TARGETS:
@@ -235,7 +237,9 @@ def _train(
         batch_size=batch_size, lr=lr, lr_min_factor=lr_min_factor, weight_decay=weight_decay,
         max_epochs=max_epochs, patience=patience, time_limit=time_limit,
     )  # fmt: skip
-    fit = _fit(model, put(i_tr), put(i_val), seed=seed, progress=progress, **schedule)
+    fit = _fit(
+        model, put(i_tr), put(i_val), seed=seed, progress=progress, on_epoch=on_epoch, **schedule
+    )
     model.load_state_dict(fit.pop("best_state"))
     model = model.to(device="cpu", dtype=torch.float64).eval()
     with torch.no_grad():  # exact float64 values (training in float32 rounded the buffers)
@@ -306,6 +310,7 @@ def _fit(
     *,
     seed,
     progress,
+    on_epoch,
     batch_size,
     lr,
     lr_min_factor,
@@ -356,6 +361,10 @@ def _fit(
         if bar is not None:
             bar.update(1)
             bar.set_postfix(train=f"{train_loss:.2e}", val=f"{val:.2e}", best=f"{best_val:.2e}")
+        if on_epoch is not None:
+            on_epoch({"epoch": epoch, "max_epochs": max_epochs, "train_loss": train_loss,
+                      "val_loss": val, "best_val_loss": best_val, "best_epoch": best_epoch,
+                      "elapsed_s": time.perf_counter() - t0})  # fmt: skip
         # No early stop in the first half of the cosine schedule: at the high learning rate the
         # validation loss is noisy and a plateau there is not convergence.
         if epoch >= max_epochs // 2 and epoch - best_epoch >= patience:

@@ -31,6 +31,9 @@ GLITCH_READINGS_SUFFIX = "Sim:GlitchReadings"
 GLITCH_VALUE_SUFFIX = "Sim:GlitchValue"
 STUCK_KNOB_SUFFIX = "Sim:StuckKnob"
 READBACK_OFFSET_SUFFIX = "Sim:ReadbackOffset"
+NARROW_KNOB_SUFFIX = "Sim:NarrowKnob"
+NARROW_LIMIT_SUFFIX = "Sim:NarrowLimit"
+STALL_PUTS_SUFFIX = "Sim:StallPuts"
 #: Alarm-severity fault injection: the severity served, on how many loss-rate reads, on which
 #: knob's readback.
 ALARM_SEVERITY_SUFFIX = "Sim:AlarmSeverity"
@@ -123,11 +126,14 @@ __all__ = [
     "LOSS_RATE_LIMITS",
     "LOSS_RATE_SUFFIX",
     "NAN_READINGS_SUFFIX",
+    "NARROW_KNOB_SUFFIX",
+    "NARROW_LIMIT_SUFFIX",
     "READBACK_DELAY_SUFFIX",
     "READBACK_OFFSET_SUFFIX",
     "READBACK_SUFFIX",
     "REBOOT_ON_READ_SUFFIX",
     "SETPOINT_SUFFIX",
+    "STALL_PUTS_SUFFIX",
     "STUCK_KNOB_SUFFIX",
     "add_ioc_arguments",
     "free_ports",

@@ -23,11 +23,14 @@ from pigp_torch.testing import (
     LOSS_RATE_LIMITS,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
+    NARROW_KNOB_SUFFIX,
+    NARROW_LIMIT_SUFFIX,
     READBACK_DELAY_SUFFIX,
     READBACK_OFFSET_SUFFIX,
     READBACK_SUFFIX,
     REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
+    STALL_PUTS_SUFFIX,
     STUCK_KNOB_SUFFIX,
 )
 from pigp_torch.testing.ioc_pvs import SimRingIOC
@@ -150,6 +153,8 @@ def sim_ioc_class(
          "fault injection: the next N reads of the loss rate return GlitchValue"),
         ("stuck_knob", STUCK_KNOB_SUFFIX, 0, len(names),
          "fault injection: k >= 1 freezes the readback of knob k (1-based); 0 releases it"),
+        ("narrow_knob", NARROW_KNOB_SUFFIX, 0, len(names),
+         "fault injection: the knob (1-based) NarrowLimit narrows; 0: every knob"),
     )  # fmt: skip
     for attr, suffix, value, upper, doc in switches:
         attrs[attr] = pvproperty(
@@ -179,6 +184,27 @@ def sim_ioc_class(
 
     offset.putter(put_offset)
     attrs["readback_offset"] = offset
+    for attr, suffix, unit, hook, doc in (
+        ("narrow_limit", NARROW_LIMIT_SUFFIX, str(units), "_on_narrow",
+         "fault injection: L > 0 narrows the control limits to [-L, L]; 0: the bounds"),
+        ("stall_puts", STALL_PUTS_SUFFIX, "s", "_on_stall",
+         "fault injection: setpoint puts stall this many seconds from now, then fail"),
+    ):  # fmt: skip
+        prop = pvproperty(
+            value=0.0,
+            name=f"{prefix}{suffix}",
+            dtype=ChannelType.DOUBLE,
+            units=unit,
+            lower_ctrl_limit=0.0,
+            upper_ctrl_limit=1e6,
+            doc=doc,
+        )
+
+        async def put_hook(group, instance, value, _hook=hook):
+            await getattr(group, _hook)(float(value))
+
+        prop.putter(put_hook)
+        attrs[attr] = prop
     _add_alarm_switches(attrs, prefix, len(names))
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
 

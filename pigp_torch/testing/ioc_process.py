@@ -21,11 +21,14 @@ from pigp_torch.testing import (
     GLITCH_VALUE_SUFFIX,
     LOSS_RATE_SUFFIX,
     NAN_READINGS_SUFFIX,
+    NARROW_KNOB_SUFFIX,
+    NARROW_LIMIT_SUFFIX,
     READBACK_DELAY_SUFFIX,
     READBACK_OFFSET_SUFFIX,
     READBACK_SUFFIX,
     REBOOT_ON_READ_SUFFIX,
     SETPOINT_SUFFIX,
+    STALL_PUTS_SUFFIX,
     STUCK_KNOB_SUFFIX,
 )
 from pigp_torch.testing.ca_env import (
@@ -92,6 +95,18 @@ class SimIOCProcess:
     @property
     def readback_offset_pv(self) -> str:
         return f"{self.prefix}{READBACK_OFFSET_SUFFIX}"
+
+    @property
+    def narrow_knob_pv(self) -> str:
+        return f"{self.prefix}{NARROW_KNOB_SUFFIX}"
+
+    @property
+    def narrow_limit_pv(self) -> str:
+        return f"{self.prefix}{NARROW_LIMIT_SUFFIX}"
+
+    @property
+    def stall_puts_pv(self) -> str:
+        return f"{self.prefix}{STALL_PUTS_SUFFIX}"
 
     @property
     def loss_rate_pv(self) -> str:

@@ -31,7 +31,18 @@ PV                        access      meaning
                                       ``k`` (1-based, knob order) where it is: it no longer
                                       follows its setpoint (a stuck supply); 0 releases it
 ``P Sim:ReadbackOffset``  read/write  fault injection: every readback is its setpoint plus this
-                                      offset (knob units; a calibration offset)
+                                      offset (knob units; a calibration offset), clipped to
+                                      the knob's bounds (a readback pushed past a bound reads
+                                      the bound: the supply saturates, the IOC lives on)
+``P Sim:NarrowKnob``      read/write  fault injection: the knob (1-based) whose control limits
+                                      ``Sim:NarrowLimit`` narrows; 0 (default): every knob
+``P Sim:NarrowLimit``     read/write  fault injection: ``L > 0`` narrows the control limits
+                                      (DRVL/DRVH) of those knobs to :math:`[-L, L]` within
+                                      their bounds, so the IOC refuses a put outside; 0 puts
+                                      the bounds back
+``P Sim:StallPuts``       read/write  fault injection: for the next ``t`` seconds every
+                                      setpoint put is held unanswered until the stall ends,
+                                      then refused (nothing applied): an IOC restarting
 ``P Sim:AlarmSeverity``   read/write  fault injection: the alarm severity the two switches
                                       below serve (0 NO_ALARM .. 3 INVALID; default 3)
 ``P Sim:AlarmReadings``   read/write  fault injection: the next N client reads of the loss
@@ -138,6 +149,7 @@ class SimRingIOC(PVGroup):
         self._refresh()  # a valid first reading (this also checks the knobs against the bounds)
         self._put_count = [0] * d  # latest put per knob wins over older delayed readbacks
         self._tasks: set[asyncio.Task] = set()
+        self._stall_until = 0.0  # monotonic time until which setpoint puts stall
 
     # ------------------------------------------------------------------ hooks
     def _log_put(self, entry: dict) -> None:
@@ -150,7 +162,11 @@ class SimRingIOC(PVGroup):
 
     async def _on_setpoint(self, i: int, value: float) -> None:
         """Setpoint ``i`` accepted (the control limits already passed): log the put, move its
-        readback."""
+        readback. During a stall (``Sim:StallPuts``) the put waits for its end, then fails."""
+        stall = self._stall_until - time.monotonic()
+        if stall > 0:
+            await asyncio.sleep(stall)
+            raise RuntimeError("setpoint put refused: the IOC was stalled (Sim:StallPuts)")
         self._log_put(
             {
                 "pv": self.setpoints[i].pvspec.name,
@@ -180,9 +196,16 @@ class SimRingIOC(PVGroup):
         unless ``StuckKnob`` names it."""
         if int(self.stuck_knob.value) == i + 1:
             return  # a stuck supply: the readback stays where it is
-        value = float(value) + float(self.readback_offset.value)
-        self._x_readback[i] = value
-        await self.readbacks[i].write(value, **self._alarm(int(self.alarm_knob.value) == i + 1))
+        await self._write_readback(i, float(value) + float(self.readback_offset.value))
+
+    async def _write_readback(self, i: int, value: float) -> None:
+        """Readback ``i`` reads ``value`` clipped to the knob's bounds (a supply pushed past its
+        bound saturates there), so the simulated physics always sees an allowed setting."""
+        lo, hi = (float(b) for b in self.machine.bounds[:, i])
+        clipped = min(max(value, lo), hi)
+        self._x_readback[i] = clipped
+        alarm = self._alarm(int(self.alarm_knob.value) == i + 1)
+        await self.readbacks[i].write(clipped, **alarm)
 
     def _alarm(self, on: bool) -> dict:
         """The alarm keywords of a write: ``Sim:AlarmSeverity`` (status READ) when ``on``, else
@@ -265,9 +288,23 @@ class SimRingIOC(PVGroup):
         """A new ``ReadbackOffset``: every readback not stuck moves to its setpoint + offset."""
         for i, sp in enumerate(self.setpoints):
             if int(self.stuck_knob.value) != i + 1:
-                self._x_readback[i] = float(sp.value) + offset
-                alarm = self._alarm(int(self.alarm_knob.value) == i + 1)
-                await self.readbacks[i].write(float(sp.value) + offset, **alarm)
+                await self._write_readback(i, float(sp.value) + offset)
+
+    async def _on_narrow(self, limit: float) -> None:
+        """A new ``Sim:NarrowLimit``: the control limits of ``Sim:NarrowKnob`` (0: every knob)
+        become :math:`[-L, L]` within the bounds; ``L = 0``: the bounds again."""
+        k = int(self.narrow_knob.value)
+        for i, sp in enumerate(self.setpoints):
+            if k not in (0, i + 1):
+                continue
+            lo, hi = (float(b) for b in self.machine.bounds[:, i])
+            if limit > 0:
+                lo, hi = max(lo, -limit), min(hi, limit)
+            await sp.write_metadata(lower_ctrl_limit=lo, upper_ctrl_limit=hi)
+
+    async def _on_stall(self, seconds: float) -> None:
+        """A new ``Sim:StallPuts``: setpoint puts stall for ``seconds`` from now."""
+        self._stall_until = time.monotonic() + max(0.0, seconds)
 
     # ------------------------------------------------------------------ names
     @property

@@ -12,12 +12,17 @@ import torch
 
 pytest.importorskip("cheetah")
 
-from pigp_torch.benchmark.ares import score_runs, summarize_scores
 from pigp_torch.cli import main
 from pigp_torch.machine import Machine
-from pigp_torch.machine.ares import AresMachine, ares_objective
+from pigp_torch.machines.ares_ea.benchmark import score_runs, summarize_scores
+from pigp_torch.machines.ares_ea.machine import AresMachine, ares_objective
+from pigp_torch.machines.ares_ea.simulation import (
+    START_SETTING,
+    AresSegment,
+    knob_bounds,
+    load_trials,
+)
 from pigp_torch.methods import METHODS, RunContext
-from pigp_torch.simulation.ares import START_SETTING, AresSegment, knob_bounds, load_trials
 
 D = torch.float64
 
@@ -144,7 +149,7 @@ def test_bench_ares_errors(tmp_path, capsys):
 
 def test_default_methods_are_ours_and_the_published():
     """Without --methods the bench runs the physics method and the two published recipes."""
-    from pigp_torch.benchmark.ares import default_ares_methods
+    from pigp_torch.machines.ares_ea.benchmark import default_ares_methods
 
     assert default_ares_methods() == ["ares-physics", "published-bo", "published-nm"]
 
@@ -153,7 +158,7 @@ def test_default_methods_are_ours_and_the_published():
 def test_ares_physics_reaches_target_on_a_tuning_trial(trials):
     """On tuning trial 3 (noise-free) the online-fitted model brings the beam within 20 um of the
     target in 12 readings, from about 600 um at the start."""
-    from pigp_torch.benchmark.ares import run_ares_trial
+    from pigp_torch.machines.ares_ea.benchmark import run_ares_trial
 
     df = run_ares_trial(trials[3], "ares-physics", steps=12, seed=3)
     assert df["mae_true"].iloc[0] > 300e-6

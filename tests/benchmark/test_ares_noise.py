@@ -9,11 +9,11 @@ import torch
 
 pytest.importorskip("cheetah")
 
-from pigp_torch.benchmark.ares import check_ares_methods, run_ares_trial, score_runs
 from pigp_torch.cli import main
-from pigp_torch.machine.ares import AresMachine
+from pigp_torch.machines.ares_ea.benchmark import check_ares_methods, run_ares_trial, score_runs
+from pigp_torch.machines.ares_ea.machine import AresMachine
+from pigp_torch.machines.ares_ea.simulation import load_trials
 from pigp_torch.methods import METHODS, RunContext
-from pigp_torch.simulation.ares import load_trials
 
 NOISE = 5e-6  # m, the noisy benchmark's screen noise
 FAST = ["published-bo", "published-nm", "ml2"]

@@ -8,8 +8,11 @@ import torch
 
 pytest.importorskip("cheetah")
 
-from pigp_torch.benchmark.ares import check_ares_methods
-from pigp_torch.benchmark.ares_prior import (
+from pigp_torch.cli import main
+from pigp_torch.machines.ares_ea.benchmark import check_ares_methods
+from pigp_torch.machines.ares_ea.command import ARES_PRIOR_METHODS_HELP
+from pigp_torch.machines.ares_ea.machine import AresMachine
+from pigp_torch.machines.ares_ea.prior import (
     ARES_PRIOR_METHODS,
     ARES_PRIOR_OBJECTIVE,
     PRIOR_NOISE_FLOOR_UM,
@@ -17,10 +20,7 @@ from pigp_torch.benchmark.ares_prior import (
     ares_prior,
     prior_noise,
 )
-from pigp_torch.cli import main
-from pigp_torch.commands.bench_ares import ARES_PRIOR_METHODS_HELP
-from pigp_torch.machine.ares import AresMachine
-from pigp_torch.simulation.ares import START_SETTING, load_trials
+from pigp_torch.machines.ares_ea.simulation import START_SETTING, load_trials
 
 TRIAL = 3  # a tuning trial (0-49)
 

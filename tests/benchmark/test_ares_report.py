@@ -100,7 +100,7 @@ def test_quantiles_per_step_and_old_folders(script, folders):
 def test_old_and_new_tables_merge_in_score_runs(folders):
     """A table merged from a folder written before the model_error column (empty there) and a
     new one scores every run as the published machine."""
-    from pigp_torch.benchmark.ares import score_runs
+    from pigp_torch.machines.ares_ea.benchmark import score_runs
 
     merged = pd.concat(
         [pd.read_csv(folders / n / "steps.csv") for n in ("old", "free_nm")], ignore_index=True

@@ -18,6 +18,7 @@ from pigp_torch.benchmark.families import (
 )
 from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
 from pigp_torch.benchmark.protocol import run_benchmark, run_one
+from pigp_torch.data.tables import read_table
 from pigp_torch.simulation.calibration import peak_density
 from pigp_torch.simulation.spec import SPEAR3, RingSpec
 
@@ -47,13 +48,14 @@ def test_wide_draws_are_deterministic_and_in_range():
 def test_project_family_is_unchanged():
     """The default family gives machine 3 the same loss-rate map (to the bit) and f* as before
     families existed (values computed by the code before this option). f* comes from a
-    multi-start L-BFGS-B search whose last bits depend on what the process ran before (1e-12
-    apart in a full test run), so it is compared to 1e-9; a changed machine moves it by far more."""
+    multi-start L-BFGS-B search that stops on a flat top where the CPU's round-off decides
+    (1.3611732 on one CPU, 1.3611863 on another: 1e-5 apart), so it is compared to 1e-4; another
+    machine's optimum differs by percents."""
     m = benchmark_ring(3, SPEAR3).loss_rate_map
     assert m == (float.fromhex("0x1.905aeea09d633p-4"), float.fromhex("0x1.27774c7127d05p-28"))
     assert benchmark_ring(3, SPEAR3, family="project").loss_rate_map == m
     f_star = machine_optimum(3, 8, machine_maps=True)
-    assert f_star == pytest.approx(float.fromhex("0x1.5c75d99691971p+0"), rel=1e-9, abs=0)
+    assert f_star == pytest.approx(float.fromhex("0x1.5c75d99691971p+0"), rel=1e-4, abs=0)
 
 
 def test_wide_machine_has_the_drawn_tunes_errors_peak_and_background(wide):
@@ -147,7 +149,6 @@ def test_oracle_prior_of_a_wide_machine_is_its_own_peak(wide, tiny_prior):
 def test_pigp_compare_runs_the_wide_family(wide, tmp_path, capsys):
     """``pigp compare --family wide`` runs and scores the wide machines; with --model-maps it
     is refused at once with the reason."""
-    import pandas as pd
 
     from pigp_torch.cli import main
 
@@ -155,7 +156,7 @@ def test_pigp_compare_runs_the_wide_family(wide, tmp_path, capsys):
     argv = ["compare", "--methods", "nelder-mead", "--seeds", str(SEED), "--family", "wide"]
     argv += ["--budget-direct", "3", "--prior-source", "exact", "-o", str(out)]
     assert main(argv) == 0
-    runs = pd.read_csv(out / "runs.csv")
+    runs = read_table(out / "runs.csv")
     assert len(runs) == 3 and (runs["family"] == "wide").all()
     assert runs["f_star"].iloc[0] == pytest.approx(wide_draw(SEED).f_star, rel=1e-6)
     assert main([*argv, "--model-maps"]) == 2

@@ -30,6 +30,12 @@ def test_plot_runs_loss_rate_adds_optimum_lines(tiny_table, tmp_path):
     fig = plot_runs(tiny_table, tmp_path / "runs.pdf")
     assert (tmp_path / "runs.pdf").stat().st_size > 1000
     assert len(fig.axes[0].get_lines()) == N_RUNS + N_METHODS + 2
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels[-1] == "true optimum of each machine"  # the dotted lines say what they are
+    one = tiny_table[tiny_table["machine_seed"] == tiny_table["machine_seed"].iloc[0]]
+    fig = plot_runs(one, tmp_path / "one.pdf")
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels[-1] == f"true optimum {one['f_star'].iloc[0]:.4g} mA/min"
 
 
 def test_plot_prior_mean_compares_two_methods(tiny_table, tmp_path):

@@ -22,6 +22,8 @@ import pigp_torch.data.runlog.writer as writer_module
 import pigp_torch.loop.run as run_module
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
+from pigp_torch.data.runlog.legacy import LEGACY_CONFIG, LEGACY_FIELDS
+from pigp_torch.loop.config.schema import config_digest
 from pigp_torch.machine import SimulatedMachine
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
@@ -118,6 +120,7 @@ def test_a_full_disk_mid_run_restores_the_knobs_and_prints_the_summary(
     captured = capsys.readouterr()
     assert "pigp optimize: run stopped: could not write to the run log" in captured.err
     assert "No space left on device" in captured.err and "Traceback" not in captured.err
+    assert len(captured.err.splitlines()) == 1  # the rule: one line (no repeats per record)
     assert "status: failed (LogWriteError" in captured.out
     assert "knobs restored to initial" in captured.out
     assert "a write failed: No space left on device; the end record is NOT in it" in captured.out
@@ -127,6 +130,39 @@ def test_a_full_disk_mid_run_restores_the_knobs_and_prints_the_summary(
     assert len((tmp_path / "run.jsonl").read_text().splitlines()) == 12
     assert log.last_end is None and 0 < log.n_evaluations < 40
     assert not (tmp_path / "run.jsonl.lock").exists()
+
+
+def test_a_read_only_log_folder_exits_1_like_a_full_disk(tmp_path, capsys, monkeypatch):
+    """A log folder that cannot be written: exit 1 (the log cannot be started, as on a full
+    disk), one line, nothing moved and no log."""
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if str(p) == str(tmp_path) else
+                        real(p, mode))  # fmt: skip
+    assert cli.main(["optimize", "--config", write_config(tmp_path), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        f"pigp optimize: could not start the run: the run log {tmp_path / 'run.jsonl'} cannot be "
+        f"created: {tmp_path} is not writable; nothing was moved"
+    ]
+    assert not (tmp_path / "run.jsonl").exists()
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_a_non_finite_max_step_is_one_line(tmp_path, capsys, value):
+    """max_step NaN or infinite (YAML .nan / .inf, or 1e400 in JSON): exit 2, one line."""
+    path = Path(write_config(tmp_path))
+    path.write_text(path.read_text().replace("max_step: 0.1", f"max_step: {value}"))
+    assert cli.main(["optimize", "--config", str(path)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "is not a step limit: give a finite fraction" in lines[0]
+    json_path = tmp_path / "run.json"
+    json_path.write_text(
+        json.dumps(yaml.safe_load(path.read_text().replace(f"max_step: {value}", "max_step: 1")))
+        .replace('"max_step": 1', '"max_step": 1e400')
+    )  # fmt: skip
+    assert cli.main(["optimize", "--config", str(json_path)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "max_step: inf is not a step limit" in lines[0]
 
 
 def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, machines):
@@ -144,7 +180,7 @@ def test_a_full_disk_and_a_stuck_readback_exit_3(tmp_path, capsys, monkeypatch, 
 
     monkeypatch.setattr(SimulatedMachine, "get", get)
     monkeypatch.setattr(writer_module, "os", DiskFull(12, on_full=freeze))
-    config = write_config(tmp_path, budget=40, restore_attempts=2)
+    config = write_config(tmp_path, budget=40, restore_attempts=2, restore_timeout=0.0)
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 3
     captured = capsys.readouterr()
     assert "the knobs were NOT restored (exit status 3)" in captured.err
@@ -354,18 +390,37 @@ def test_a_torn_last_line_resumes_with_one_plain_warning(tmp_path):
     assert records.n_evaluations == 9 and records.verified and records.torn_line is None
 
 
-def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
-    """A version-2 log (no hashes, as the previous version wrote): it resumes, with one warning
-    that it cannot be verified, and stays unchained."""
-    log, more = finished_run(tmp_path)
+def downgrade(log: Path, *, as_written: bool, change=None) -> None:
+    """The log as version 2: every hash removed; ``as_written``: also every field and run-file
+    option version 2 never wrote (the log as that version would have written it); ``change``
+    edits the first start record."""
     lines = []
     for line in log.read_text().splitlines():
         record = json.loads(line)
         record.pop("hash")
         if record["type"] == "header":
             record["version"] = 2
+        if as_written and record["type"] != "notice":
+            record = {k: v for k, v in record.items() if k in LEGACY_FIELDS[record["type"]]}
+            if record["type"] == "header":
+                config = record["config"]
+                kind = f"machine:{config['machine']['kind']}"
+                config["machine"] = {k: v for k, v in config["machine"].items()
+                                     if k in LEGACY_CONFIG[kind]}  # fmt: skip
+                record["config"] = {k: v for k, v in config.items() if k in LEGACY_CONFIG[""]}
+                record["config_sha256"] = config_digest(record["config"])
+        if change is not None and record["type"] == "start":
+            change(record)
+            change = None
         lines.append(json.dumps(record, separators=(",", ":")))
     log.write_text("\n".join(lines) + "\n")
+
+
+def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
+    """A version-2 log (no hashes, only what version 2 wrote): it resumes, with one warning that
+    it cannot be verified, and stays unchained."""
+    log, more = finished_run(tmp_path)
+    downgrade(log, as_written=True)
     capsys.readouterr()
     assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 0
     err = capsys.readouterr().err
@@ -373,6 +428,54 @@ def test_an_old_log_without_a_chain_resumes_with_a_warning(tmp_path, capsys):
     records = read_log(log, warn=False)
     assert records.n_evaluations == 9 and not records.chained
     assert all("hash" not in r for r in records.evaluations)
+
+
+def test_a_downgraded_log_is_refused(tmp_path, capsys):
+    """A current log with its version set to 2 and every hash deleted (the chain switched off):
+    its header stores options version 2 did not have, so --resume and pigp report refuse it
+    (exit 2, naming line 1 and the options)."""
+    log, more = finished_run(tmp_path)
+    downgrade(log, as_written=False)
+    capsys.readouterr()
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "run.jsonl:1: the log claims run-log version 2 (no hash chain) but" in err
+    assert "restore_timeout" in err and "refused" in err
+    assert cli.main(["report", str(log)]) == 2
+    assert "claims run-log version 2" in capsys.readouterr().err
+
+
+def test_a_version_3_log_without_its_hashes_is_refused(tmp_path, capsys):
+    """A version-3 log whose hashes were all deleted cannot be resumed or reported."""
+    log, more = finished_run(tmp_path)
+    text = "".join(
+        json.dumps({k: v for k, v in json.loads(ln).items() if k != "hash"}) + "\n"
+        for ln in log.read_text().splitlines()
+    )
+    log.write_text(text)
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    assert "run.jsonl:1: the record has no 'hash'" in capsys.readouterr().err
+    assert cli.main(["report", str(log)]) == 2
+
+
+def test_an_old_log_whose_restore_target_is_far_needs_confirmation(tmp_path, capsys):
+    """A version-2 log whose initial knobs are more than max_step from the setpoints now: the
+    target is shown and the resume refused (exit 2, the log untouched); with
+    --accept-restore-target it resumes and restores there."""
+    log, more = finished_run(tmp_path)
+    far = [0.009, -0.009]  # the knobs stand at the start, near 0: > max_step (0.2 * 0.01) away
+    downgrade(log, as_written=True, change=lambda r: r.update(initial_knobs=far))
+    before = log.read_text()
+    capsys.readouterr()
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "the initial knobs of the first start (the restore target)" in captured.out
+    assert "0.009" in captured.out and "--accept-restore-target" in captured.err
+    assert "cannot be verified and is more than max_step" in captured.err
+    assert log.read_text() == before
+    args = ["optimize", "--resume", str(log), "--config", more, "--quiet"]
+    assert cli.main([*args, "--accept-restore-target"]) == 0
+    assert read_log(log, warn=False).last_end["final_knobs"] == far
 
 
 # -------------------------------------------------------------------------- run files

@@ -137,8 +137,8 @@ def test_every_method_names_a_known_task():
 def test_every_ares_method_proposes_finite_settings_in_bounds(name, trial, seed):
     """On an ARES-EA tuning trial (0–49): every proposal finite, inside the machine's bounds and
     inside a trust box the method reports."""
-    from pigp_torch.machine.ares import AresMachine
-    from pigp_torch.simulation.ares import load_trials
+    from pigp_torch.machines.ares_ea.machine import AresMachine
+    from pigp_torch.machines.ares_ea.simulation import load_trials
 
     machine = AresMachine(load_trials()[trial], seed=seed)
     bounds = machine.bounds.to(DT)

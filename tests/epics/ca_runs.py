@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 import yaml
+
+from pigp_torch import cli
 
 KNOBS = ["01G-QSS4", "02G-QSS3"]
 
@@ -32,8 +35,23 @@ def write_config(tmp_path, ioc, ring, name="run.yaml", **over) -> str:
         "log": "run.jsonl",
         "retry_interval": 0.05,
         "restore_interval": 0.1,
+        "restore_timeout": 0.0,  # the attempts only (a test of the window sets one)
     }
     data.update(over)
     path = tmp_path / name
     path.write_text(yaml.safe_dump(data))
     return str(path)
+
+
+@pytest.fixture(autouse=True)
+def private_locks(tmp_path, monkeypatch):
+    """Machine locks in this test's folder (not the host's shared one); import it into a test
+    module to use it there."""
+    monkeypatch.setenv("PIGP_LOCK_DIR", str(tmp_path / "locks"))
+
+
+@pytest.fixture
+def with_optimize(monkeypatch):
+    """``pigp optimize`` among the CLI's commands (``cli.main(["optimize", ...])``)."""
+    modules = tuple(dict.fromkeys((*cli.COMMAND_MODULES, "optimize")))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", modules)

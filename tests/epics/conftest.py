@@ -109,6 +109,9 @@ def reset(handle, client) -> None:
     client.write(handle.glitch_value_pv, 1e30)
     client.write(handle.stuck_knob_pv, 0)
     client.write(handle.readback_offset_pv, 0.0)
+    client.write(handle.stall_puts_pv, 0.0)
+    client.write(handle.narrow_knob_pv, 0)
+    client.write(handle.narrow_limit_pv, 0.0)
     client.write_many(handle.setpoint_pvs, torch.zeros(len(handle.knob_names)))
 
 

@@ -105,12 +105,13 @@ def test_max_step_is_measured_from_the_readbacks(ioc, probe, ca_context):
 
 def test_put_refused_by_the_ioc_raises_machine_error(ioc, probe, ca_context, ring):
     """Machine bounds wider than the IOC's limits (the start-up check switched off): the IOC
-    refuses the put, the machine raises."""
+    refuses the put, the machine raises PutRefused naming the PV and the IOC's reason."""
     wide = ring.bounds * 4 / 3
     x = torch.zeros(len(ioc.knob_names), dtype=torch.float64)
     x[0] = float(ring.bounds[1, 0]) * 1.2  # inside the machine's bounds, outside the IOC's
     with make_machine(ioc, ca_context, bounds=wide, check_control_limits=False) as m:
-        with pytest.raises(MachineError, match=r"no answer to put \['01G-QSS4:CurrSetpt'\]"):
+        with pytest.raises(MachineError, match=r"IOC refused the put\(s\) to 01G-QSS4:CurrSetpt: "
+                           r"ECA_PUTFAIL .*Limits are set to -30.0 and 30.0"):  # fmt: skip
             m.set(x)
     assert probe.read(ioc.setpoint_pvs[0]) == 0.0
     assert probe.read(ioc.readback_pvs[0]) == 0.0

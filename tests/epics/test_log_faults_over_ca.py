@@ -16,11 +16,12 @@ import os
 
 import pytest
 import torch
+import yaml
 
 import pigp_torch.data.runlog.writer as writer_module
 from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
-from tests.commands.test_log_faults import DiskFull
+from tests.commands.test_log_faults import DiskFull, downgrade
 
 from .ca_runs import KNOBS, bounds_of, start_of, write_config
 
@@ -71,6 +72,7 @@ def test_a_full_disk_mid_run_restores_the_ioc_exactly(
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "pigp optimize: run stopped: could not write to the run log" in captured.err
+    assert len(captured.err.splitlines()) == 1  # one line, not one per record refused
     assert "knobs restored to initial" in captured.out and "status: failed" in captured.out
     assert torch.equal(setpoints(ioc, probe), start)
     monkeypatch.setattr(writer_module, "os", os)
@@ -129,6 +131,42 @@ def test_an_edited_initial_knob_is_refused_and_nothing_is_put(ioc, probe, ring, 
         capsys.readouterr().err
     )
     assert torch.equal(setpoints(ioc, probe), start) and put_stamps(ioc, probe) == stamps
+
+
+def default_window(path: str) -> str:
+    """The run file without its restore_timeout (the default, as a version-2 run file had)."""
+    data = yaml.safe_load(open(path))
+    data.pop("restore_timeout")
+    with open(path, "w") as f:
+        yaml.safe_dump(data, f)
+    return path
+
+
+@pytest.mark.parametrize("as_written", [False, True])
+def test_a_downgraded_and_edited_log_puts_nothing(ioc, probe, ring, tmp_path, capsys, as_written):
+    """A finished run's log set to version 2 with every hash deleted and its first start's
+    initial knobs edited to the upper bounds: refused (exit 2) with no put at the IOC, whether
+    the log still holds what only newer versions write (refused as edited) or was stripped to
+    what version 2 wrote (its unverifiable restore target is shown and refused: more than
+    max_step from the setpoints now)."""
+    start = start_of(ring)
+    probe.write_many(ioc.setpoint_pvs[:2], start)
+    config, more = (default_window(write_config(tmp_path, ioc, ring, name=name, budget=budget))
+                    for name, budget in (("run.yaml", 4), ("more.yaml", 8)))  # fmt: skip
+    assert cli.main(["optimize", "--config", config]) == 0
+    log = tmp_path / "run.jsonl"
+    upper = bounds_of(ring)[1].tolist()
+    downgrade(log, as_written=as_written, change=lambda r: r.update(initial_knobs=upper))
+    capsys.readouterr()
+    stamps, mark = put_stamps(ioc, probe), ioc.n_puts()
+    assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    if as_written:
+        assert "its restore target (the initial knobs above) cannot be verified" in err
+    else:
+        assert "run.jsonl:1: the log claims run-log version 2 (no hash chain) but" in err
+    assert torch.equal(setpoints(ioc, probe), start) and put_stamps(ioc, probe) == stamps
+    assert ioc.puts(mark) == []
 
 
 @pytest.mark.slow

@@ -6,6 +6,11 @@ Cases (each against its own simulated IOC on 127.0.0.1, knobs first set to ``STA
 * ``headless``: :func:`pigp_torch.integrations.badger.run_routine` (Badger's ``core.run_routine``)
   to the end, with ``end_knobs`` initial and best, then a Ctrl-C (``KeyboardInterrupt`` from a
   callback) in the middle of a routine;
+* ``core``: a script of its own (a child process) runs a routine with Badger's own
+  ``badger.core.run_routine`` and stops it through the active callback after 4 evaluations,
+  then: catches Badger's ``BadgerRunTerminated`` and exits; lets it end the process (uncaught);
+  or drops the routine and collects the garbage, reading the setpoints before ``os._exit``
+  (no exit hook runs);
 * ``gui``: Badger's GUI runner without the GUI: ``badger.core_subprocess.run_routine_subprocess``
   in a ``multiprocessing.Process`` fed as ``BadgerRoutineSubprocess`` feeds it, ended by its
   termination condition, then stopped as the GUI's Stop button does (stop event, 0.1 s, SIGTERM).
@@ -215,6 +220,56 @@ def gui(ioc, probe) -> dict:
     }
 
 
+CORE_SCRIPT = """
+import gc, json, os, sys
+sys.path.insert(0, sys.argv[1])
+import badger_driver as d
+from badger.core import run_routine
+from badger.errors import BadgerRunTerminated
+
+how, port = sys.argv[2], int(sys.argv[3])
+routine = d._routine(port)
+stop = lambda: 2 if routine.data is not None and len(routine.data) >= 4 else 0
+if how == "uncaught":
+    run_routine(routine, stop, lambda c: None, None, None, verbose=0)
+try:
+    run_routine(routine, stop, lambda c: None, None, None, verbose=0)
+except BadgerRunTerminated:
+    pass
+out = {"n": len(routine.data), "moved": d._moved(routine.data)}
+if how == "gc":
+    del routine, stop
+    gc.collect()
+    probe = d.Probe()
+    out["inside"] = probe.read_many([k + ":CurrSetpt" for k in d.pb.SIM_KNOBS]).tolist()
+    print(json.dumps(out), flush=True)
+    os._exit(0)
+print(json.dumps(out), flush=True)
+"""
+
+
+def core(ioc, probe) -> dict:
+    """Each way a script of Badger's own loop ends (see the module docstring)."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    out = {}
+    for how in ("caught", "uncaught", "gc"):
+        probe.write_many(ioc.setpoint_pvs, START_A)
+        proc = subprocess.run(
+            [sys.executable, "-c", CORE_SCRIPT, str(Path(__file__).parent), how, str(ioc.port)],
+            capture_output=True, text=True, timeout=240, env={**os.environ, **ioc.client_env},
+        )  # fmt: skip
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+        out[how] = {
+            "returncode": proc.returncode,
+            "end": _setpoints(probe, ioc),
+            **(json.loads(lines[-1]) if lines else {"stderr": proc.stderr[-2000:]}),
+        }
+    return out
+
+
 def main() -> None:
     from pigp_torch.testing.ioc import start_sim_ioc
 
@@ -222,7 +277,8 @@ def main() -> None:
     case = sys.argv[1]
     with start_sim_ioc(1, update_period=0.05) as ioc:
         probe = Probe()
-        result = {"start": START_A, **(headless if case == "headless" else gui)(ioc, probe)}
+        run = {"headless": headless, "gui": gui, "core": core}[case]
+        result = {"start": START_A, **run(ioc, probe)}
     print(json.dumps(result))
 
 

@@ -24,10 +24,7 @@ def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path, layered_python, fres
     """badger-setup on a fresh HOME; Badger's own CLI then lists pigp_physics and pigp_sim; a
     headless pigp_physics routine on pigp_sim against `pigp serve-sim` moves the knobs and ends
     with the IOC's setpoints exactly where they were."""
-    import torch
-
     import pigp_torch.integrations.badger as pb
-    from pigp_torch.prior import PhysicsPrior
     from pigp_torch.testing.ca_env import client_environment, free_port, patched_environ
 
     python, env = layered_python, fresh_home_env
@@ -50,18 +47,7 @@ def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path, layered_python, fres
     assert "pigp_sim" in run("-m", "badger", "env")
     assert "prior" in run("-m", "badger", "generator", "pigp_physics")
 
-    d = len(pb.SIM_KNOBS)
-    PhysicsPrior(
-        x0=torch.zeros(d, dtype=torch.float64),
-        f_x0=1.5,
-        f_inf=0.2,
-        precision=2e-3 * torch.eye(d, dtype=torch.float64),
-        amplitude=0.1,
-        noise=0.04,
-        knob_names=list(pb.SIM_KNOBS),
-        bounds=torch.tensor([[-30.0] * d, [30.0] * d], dtype=torch.float64),
-    ).save(tmp_path / "prior.json")  # fmt: skip  (the README's prior is pigp demo's: minutes)
-
+    d = len(pb.SIM_KNOBS)  # the routine runs with the shipped prior, as the README's command
     port = free_port()
     ioc = subprocess.Popen(
         [str(python), "-m", "pigp_torch.cli", "serve-sim", "--port", str(port)],
@@ -86,8 +72,7 @@ def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path, layered_python, fres
             for pv, value in zip(pvs, start, strict=True):
                 pv.write([value], wait=True, timeout=5.0)
             out = run(
-                str(REPO / "examples" / "badger_routine.py"),
-                "--prior", str(tmp_path / "prior.json"), "--ca-port", str(port),
+                str(REPO / "examples" / "badger_routine.py"), "--ca-port", str(port),
                 "--evaluations", "5", timeout=300,
             )  # fmt: skip
             end = [float(pv.read(timeout=5.0).data[0]) for pv in pvs]

@@ -60,3 +60,19 @@ def test_gui_routines_end_with_the_knobs_found_at_the_start(tmp_path):
     stopped = r["stopped"]
     assert stopped["n"] >= 3 and stopped["moved"] > 1.0 and stopped["stopped_by"] is not None
     assert stopped["end"] == r["start"]
+
+
+@pytest.mark.slow
+def test_badger_core_routines_stopped_by_their_active_callback_end_at_the_start(tmp_path):
+    """A script that runs a routine with Badger's own ``badger.core.run_routine`` in its own
+    process and stops it through the active callback: the IOC's setpoints end exactly at the
+    start whether the script catches Badger's stop and exits, dies of it (exit 1), or drops the
+    routine and collects the garbage (restored while the process still runs, no exit hook)."""
+    r = _drive("core", tmp_path)
+    for how in ("caught", "uncaught", "gc"):
+        case = r[how]
+        assert case["end"] == r["start"], (how, case)
+    assert r["caught"]["returncode"] == 0 and r["caught"]["n"] == 4
+    assert r["caught"]["moved"] > 1.0  # the routine did move the knobs (A)
+    assert r["uncaught"]["returncode"] == 1
+    assert r["gc"]["returncode"] == 0 and r["gc"]["inside"] == r["start"]

@@ -438,8 +438,9 @@ def test_an_intent_record_precedes_every_set(tmp_path):
 
 
 def test_a_failed_restore_is_retried_and_the_end_record_says_so(tmp_path):
-    """The first restore attempt fails (a power supply trips), the second succeeds; when every
-    attempt fails the end record has restored false and the last setpoint written."""
+    """The restore's ramp of every knob fails (a power supply trips once): the knobs then go one
+    by one in the same attempt and the end record names the trip; when every attempt fails the
+    end record has restored false and the last setpoint written."""
 
     class TripsOnce(FaultyMachine):
         def _apply(self, x):
@@ -452,8 +453,9 @@ def test_a_failed_restore_is_retried_and_the_end_record_says_so(tmp_path):
     m = TripsOnce()
     optimize(m, Walk(BOUNDS), None, 3, log=tmp_path / "a.jsonl", restore_interval=0.0)
     end = read_log(tmp_path / "a.jsonl").last_end
-    assert end["restored"] is True and end["restore_attempts"] == 2
+    assert end["restored"] is True and end["restore_attempts"] == 1
     assert "power supply tripped" in end["restore_errors"][0] and m.get().tolist() == INITIAL
+    assert end["restore_errors"][0].endswith("(then ramped knob by knob)")
 
     class NeverBack(FaultyMachine):
         def _apply(self, x):

@@ -8,10 +8,10 @@ import torch
 
 pytest.importorskip("cheetah")
 
-from pigp_torch.methods.ares import ares_model_parts
+from pigp_torch.machines.ares_ea.cases import case_machine_parts
+from pigp_torch.machines.ares_ea.methods import ares_model_parts
+from pigp_torch.machines.ares_ea.simulation import knob_bounds, load_trials
 from pigp_torch.optimizers._least_squares import fit_unknowns, row_jacobian
-from pigp_torch.simulation.ares import knob_bounds, load_trials
-from pigp_torch.simulation.ares_cases import case_machine_parts
 
 D = torch.float64
 

@@ -6,13 +6,20 @@ loss-rate map, no :math:`f^*` search) with the kept prior ``docs/data/prior_spea
 ``(method, options, machine seed, budget)``; every evaluated setting and reading is stored as
 float64 hex strings in ``tests/data/pinned_trajectories.json``.
 
-Regenerate (only on purpose, on unchanged code): ``python -m tests.pinned.pin``.
+The runs are made in a new process on the CPU-independent path of :mod:`tests.pinned.portable`
+(scalar kernels, one BLAS branch), so the pins hold on any x86-64 CPU and still catch any change
+of the arithmetic. Regenerate (only on purpose, on unchanged code): ``python -m tests.pinned.pin``
+(it re-runs itself on that path); ``python -m tests.pinned.pin --print KEY`` prints one run.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 from pathlib import Path
+
+from tests.pinned.portable import MARKER, run_portable
 
 ROOT = Path(__file__).resolve().parents[2]
 PRIOR = ROOT / "docs" / "data" / "prior_spear3_seed0_surrogate.json"
@@ -60,10 +67,37 @@ def trajectory(method: str, options: dict, seed: int, budget: int) -> dict:
     }
 
 
-def main() -> None:
+def run_by_key(key: str) -> tuple:
+    """The entry of :data:`RUNS` whose :func:`run_key` is ``key``."""
+    runs = {run_key(*run): run for run in RUNS}
+    if key not in runs:
+        raise KeyError(f"no pinned run {key!r}; known: {', '.join(runs)}")
+    return runs[key]
+
+
+def portable_trajectory(run, *, prefix=(), portable: bool = True) -> dict:
+    """:func:`trajectory` of ``run`` (a key of :data:`RUNS` or a ``(method, options, seed,
+    budget)`` tuple), computed in a new process on the portable path."""
+    arg = ["--print", run] if isinstance(run, str) else ["--run", json.dumps(list(run))]
+    out = run_portable(["-m", "tests.pinned.pin", *arg], prefix=prefix, portable=portable)
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Pinned benchmark trajectories.")
+    parser.add_argument("--print", metavar="KEY", help="print one pinned run's trajectory as JSON")
+    parser.add_argument("--run", metavar="JSON", help="print [method, options, seed, budget]'s")
+    args = parser.parse_args(argv)
+    if args.print or args.run:
+        run = run_by_key(args.print) if args.print else json.loads(args.run)
+        print(json.dumps(trajectory(*run)))
+        return
+    if os.environ.get(MARKER) != "1":
+        print(run_portable(["-m", "tests.pinned.pin"]), end="")
+        return
     out = {run_key(*run): trajectory(*run) for run in RUNS}
     DATA.write_text(json.dumps(out, indent=0) + "\n")
-    print(f"wrote {len(out)} runs to {DATA}")
+    print(f"wrote {len(out)} runs to {DATA} on the portable path")
 
 
 if __name__ == "__main__":

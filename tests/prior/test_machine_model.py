@@ -92,8 +92,8 @@ def test_ares_machine_model_reproduces_the_trial_beam():
     """The ARES instance at a trial's own unknowns predicts the trial's screen beam (the energy,
     bunch length and energy spread held at the middle of their ranges do not enter the
     transverse optics) to within 1 nm, and its goal is the MAE to the target."""
-    from pigp_torch.methods.ares import ares_machine_model
-    from pigp_torch.simulation.ares import AresSegment, load_trials
+    from pigp_torch.machines.ares_ea.methods import ares_machine_model
+    from pigp_torch.machines.ares_ea.simulation import AresSegment, load_trials
 
     trial = load_trials()[3]
     m = ares_machine_model(trial.target)

@@ -13,8 +13,8 @@ from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config import ConfigError
 from pigp_torch.loop.run import build_machine, load_config, validate_config
+from pigp_torch.machines.ares_ea.simulation import KNOB_NAMES, KNOB_UNITS, knob_bounds
 from pigp_torch.reporting.dashboard import run_state
-from pigp_torch.simulation.ares import KNOB_NAMES, KNOB_UNITS, knob_bounds
 
 LIMITS = knob_bounds()
 KNOBS = {n: [float(LIMITS[0, i]), float(LIMITS[1, i])] for i, n in enumerate(KNOB_NAMES)}
@@ -73,6 +73,11 @@ def test_ares_physics_runs_online_and_logs_the_beam(tmp_path, capsys):
     assert float(log.Y()[0]) > 100 * UM  # the start is far off: the run did the tuning
     assert len(log.intents) > 8  # some moves were ramped (max_step 0.5 of the half-range)
     assert log.last_end["final_knobs"] == pytest.approx([10.0, -10.0, 0.0, 10.0, 0.0])
+    # a person reads the beam in µm (the log keeps m) and each knob with its own unit
+    best = log.last_end["best"]
+    assert f"best y = {1e6 * best['y']:.6g} µm at evaluation {best['step'] + 1}: " in out
+    assert f"AREAMQZM1={best['x'][0]:.6g} 1/m^2, " in out
+    assert f"AREAMCHM1={best['x'][4]:.6g} rad" in out and "minimize the objective (µm)" in out
 
 
 def test_published_nm_runs_online_and_logs_the_beam(tmp_path):
@@ -103,8 +108,10 @@ def test_published_nm_runs_online_and_logs_the_beam(tmp_path):
     assert len({tuple(x) for x in log.X().tolist()}) > 5  # the simplex moved
     assert cli.main(["report", str(tmp_path / "run.jsonl")]) == 0
     page = (tmp_path / "run_report.html").read_text()
-    assert f"mu_x = {float(obs[i, 0]):.6g} m" in page
-    assert f"sigma_y = {float(obs[i, 3]):.6g} m" in page
+    assert f"mu_x = {1e6 * float(obs[i, 0]):.6g} µm" in page  # the beam in µm for a person
+    assert f"sigma_y = {1e6 * float(obs[i, 3]):.6g} µm" in page
+    assert f"best reading {1e6 * float(log.Y()[i]):.6g} µm at evaluation {i + 1}" in page
+    assert "AREAMCVM1 in rad" in page and "AREAMQZM1 in 1/m^2" in page
     state = run_state(tmp_path / "run.jsonl")  # the dashboard's page reads the same log
     assert state["n"] == 10 and state["objective_unit"] == "m"
     assert state["best_y"] == pytest.approx(float(log.Y()[i]), rel=1e-12)

@@ -418,3 +418,18 @@ def test_a_log_written_before_the_new_keys_still_resumes_with_its_run_file(tmp_p
     check_resume(cfg, read_log(cfg.log))
     with pytest.raises(ConfigError, match=r"differs from the logged run in \['restore_attempts'\]"):
         check_resume(validate_config(sim(restore_attempts=5), base_dir=tmp_path), read_log(cfg.log))
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [(-1.0, "greater than or equal to 0"), (4000.0, "less than or equal to 3600"),
+     (float("nan"), "restore_timeout"), (float("inf"), "restore_timeout"), ("30", "number")],
+)  # fmt: skip
+def test_restore_timeout_is_validated(tmp_path, value, message):
+    """restore_timeout: seconds, default 30, from 0 to 3600, a number (not a string)."""
+    assert validate_config(sim(), base_dir=tmp_path).restore_timeout == 30.0
+    assert validate_config(sim(restore_timeout=0), base_dir=tmp_path).restore_timeout == 0.0
+    with pytest.raises(ConfigError, match=message):
+        validate_config(sim(restore_timeout=value), base_dir=tmp_path)
+    setup = build_run(validate_config(sim(restore_timeout=12.5), base_dir=tmp_path))
+    assert setup.options().restore_timeout == 12.5

@@ -10,7 +10,7 @@ import torch
 
 pytest.importorskip("cheetah")
 
-from pigp_torch.simulation.ares import (
+from pigp_torch.machines.ares_ea.simulation import (
     INCOMING_NAMES,
     KNOB_NAMES,
     START_SETTING,

@@ -11,16 +11,21 @@ import torch
 pytest.importorskip("cheetah")
 
 from pigp_torch.cli import main
-from pigp_torch.commands.bench_ares import MODEL_ERROR_HELP
-from pigp_torch.machine.ares import AresMachine
-from pigp_torch.simulation.ares import INCOMING_NAMES, AresSegment, load_lattice, load_trials
-from pigp_torch.simulation.ares_cases import (
+from pigp_torch.machines.ares_ea.cases import (
     CASE_TEXT,
     MODEL_ERROR_CASES,
     beam_outside,
     case_machine_parts,
     case_trial,
     check_case,
+)
+from pigp_torch.machines.ares_ea.command import MODEL_ERROR_HELP
+from pigp_torch.machines.ares_ea.machine import AresMachine
+from pigp_torch.machines.ares_ea.simulation import (
+    INCOMING_NAMES,
+    AresSegment,
+    load_lattice,
+    load_trials,
 )
 
 D = torch.float64

@@ -40,10 +40,13 @@ its record in the file; a log whose header could not be written is removed.
 **Tamper evidence.** Every record carries ``hash``, a sha256 chained to the previous record's
 (the header starts the chain; :mod:`pigp_torch.data.runlog.format`). :func:`read_log` verifies the
 chain and refuses a log edited anywhere — a changed reading, initial knob or header bound, a line
-removed or inserted — naming the first line that does not match. Logs written before the chain
-(versions 1 and 2) are still read and resumed, with an
-:class:`~pigp_torch.data.runlog.format.UnchainedLogWarning`: they cannot be verified (records
-appended to such a log stay unchained).
+removed or inserted — naming the first line that does not match; a version-3 log without its
+hashes is refused. Logs written before the chain (versions 1 and 2) are read and resumed, with an
+:class:`~pigp_torch.data.runlog.format.UnchainedLogWarning` (they cannot be verified), only
+where that version could have written every record (:mod:`pigp_torch.data.runlog.legacy`: a
+newer log with its version edited and its hashes deleted is refused); records appended to such a
+log stay unchained and carry ``appended_by_version``. What the chain protects and what it cannot:
+``docs/run_log.md``.
 
 Why JSON lines and not CSV/Parquet: records of different types share one file, a reader needs
 nothing but ``json``, appending never rewrites earlier bytes, and floats round-trip exactly

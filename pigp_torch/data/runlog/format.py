@@ -15,7 +15,8 @@ changed (or, for a deletion, at the record after the gap), so a reader names tha
 chain is tamper-*evident*, not a signature: there is no secret, so whoever recomputes every
 later hash can forge a log; and a log cut at a record boundary (a crash between two records, or
 its last records removed) is a valid prefix. Logs of versions 1 and 2 have no chain: they are
-read with an :class:`UnchainedLogWarning` (they cannot be verified).
+read with an :class:`UnchainedLogWarning` (they cannot be verified), and only where that version
+could have written them (:mod:`~pigp_torch.data.runlog.legacy`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ READABLE_VERSIONS = (1, 2, 3)
 CHAINED_VERSION = 3
 #: Name of the chain field of every record (version 3).
 HASH_KEY = "hash"
+#: Field of a record appended by this version to an older version's log (no chain).
+APPENDED_KEY = "appended_by_version"
 RECORD_TYPES = ("header", "start", "evaluation", "end", "intent", "discarded", "notice")
 END_STATUSES = ("completed", "interrupted", "aborted", "failed")
 

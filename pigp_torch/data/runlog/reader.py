@@ -21,6 +21,7 @@ from pigp_torch.data.runlog.format import (
     UnchainedLogWarning,
     chain_hash,
 )
+from pigp_torch.data.runlog.legacy import check_legacy
 
 
 @dataclass
@@ -135,7 +136,9 @@ def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> Run
     matches the hash chain (:mod:`pigp_torch.data.runlog.format`), so a log edited anywhere is
     refused with the first line that does not match. A last line without its final newline was cut
     short by an interrupted write (the writer ends every record with one): it is skipped; an invalid
-    line elsewhere is an error. A log of an older version (no chain) is read but cannot be verified.
+    line elsewhere is an error. A log of an older version (no chain) is read only where that
+    version could have written every record (:func:`~pigp_torch.data.runlog.legacy.check_legacy`:
+    no hash, no newer record type, field or run-file option), but cannot be verified.
 
     Each returned record carries ``_line`` (its 1-based line number).
 
@@ -192,6 +195,8 @@ def read_log(path: str | Path, *, verify: bool = True, warn: bool = True) -> Run
         raise ValueError(
             f"{path}:1: the header carries a hash but claims version {version} (the log was edited)"
         )
+    if not chained:  # a downgraded log: what that version never wrote gives it away
+        check_legacy(records, version, path)
     last_hash = _check_chain(records, path, verify) if chained else None
     if not chained:
         notes.append(

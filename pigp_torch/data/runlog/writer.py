@@ -12,6 +12,7 @@ from typing import Any
 
 from pigp_torch._utils import utc_now
 from pigp_torch.data.runlog.format import (
+    APPENDED_KEY,
     END_STATUSES,
     FORMAT_TAG,
     FORMAT_VERSION,
@@ -150,7 +151,8 @@ class RunLog:
         The log's lock is taken first (``lock`` as in :meth:`create`); the log is read and its
         hash chain verified (:func:`~pigp_torch.data.runlog.read_log`, ``warn`` as there); then a
         last line cut short by a crash during a write (no final newline) is removed. New records
-        continue the chain (a log without one, from an older version, stays without one).
+        continue the chain (a log without one, from an older version, stays without one; each
+        record appended to it carries ``appended_by_version``, the version that wrote it).
 
         Raises:
             FileNotFoundError: no such file.
@@ -184,6 +186,8 @@ class RunLog:
         """Add the chain's hash to ``record``, write it as one line; returns the record written."""
         if self._fd is None:
             raise ValueError(f"run log {self.path} is closed")
+        if self._chain is None:  # appended to an older version's log: say by whom
+            record = {**record, APPENDED_KEY: FORMAT_VERSION}
         line = _dumps(record)
         digest = None
         if self._chain is not None:  # hash the record as a reader will see it (parsed back)

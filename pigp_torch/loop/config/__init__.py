@@ -4,7 +4,6 @@ checked against the method registry and built by :mod:`pigp_torch.loop.run`."""
 
 from pigp_torch.loop.config.files import format_errors, invalid, parse_config, read_run_file
 from pigp_torch.loop.config.schema import (
-    AresSimConfig,
     ConfigError,
     EpicsMachineConfig,
     MachineConfig,
@@ -16,7 +15,6 @@ from pigp_torch.loop.config.schema import (
 )
 
 __all__ = [
-    "AresSimConfig",
     "ConfigError",
     "EpicsMachineConfig",
     "MachineConfig",

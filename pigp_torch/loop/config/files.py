@@ -12,14 +12,12 @@ from typing import Any
 from pydantic import ValidationError
 
 from pigp_torch.loop.config.schema import (
-    AresSimConfig,
     ConfigError,
-    EpicsMachineConfig,
     MethodConfig,
     ObjectiveConfig,
     RunConfig,
-    SimMachineConfig,
 )
+from pigp_torch.loop.config.sections import SECTIONS
 
 #: pydantic error types of a value of the wrong type in strict mode (a number, a flag).
 _TYPE_ERRORS = ("float_type", "int_type", "bool_type")
@@ -35,11 +33,7 @@ def _allowed_keys(parent: tuple[str, ...], data: Any) -> list[str]:
     model = _SECTIONS.get(parent)
     if parent == ("machine",):
         kind = data.get("machine", {}).get("kind") if isinstance(data, dict) else None
-        model = {
-            "sim": SimMachineConfig,
-            "ares-sim": AresSimConfig,
-            "epics": EpicsMachineConfig,
-        }.get(kind)
+        model = SECTIONS.get(kind)
     return list(model.model_fields) if model is not None else []
 
 
@@ -49,7 +43,7 @@ def format_errors(err: ValidationError, data: Any) -> list[str]:
     lines = []
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
-        if len(loc) >= 2 and loc[0] == "machine" and loc[1] in ("sim", "ares-sim", "epics"):
+        if len(loc) >= 2 and loc[0] == "machine" and loc[1] in SECTIONS:
             del loc[1]  # the union tag pydantic adds
         where = ".".join(loc)
         msg = e["msg"].removeprefix("Value error, ")

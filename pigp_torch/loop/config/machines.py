@@ -1,44 +1,30 @@
-r"""The machine sections of a run file: the simulated ring (:class:`SimMachineConfig`), the
-simulated ARES-EA linac (:class:`AresSimConfig`) and a machine over EPICS Channel Access
-(:class:`EpicsMachineConfig`), chosen by ``kind``
-(:data:`MachineConfig`); the strict field types every section uses (:data:`Number`,
-:data:`Integer`, :data:`Flag`). The run as a whole: :mod:`pigp_torch.loop.config.schema`.
+r"""The machine sections of a run file: the simulated ring (:class:`SimMachineConfig`) and a
+machine over EPICS Channel Access (:class:`EpicsMachineConfig`). The sections of the other machine
+kinds (``kind: ares-sim``) are theirs (:meth:`pigp_torch.machines.MachineKind.section`); all are
+chosen by ``kind`` (:data:`pigp_torch.loop.config.sections.MachineConfig`) and built of the strict
+field types of :mod:`pigp_torch.machines.section` (:data:`Number`, :data:`Integer`,
+:data:`Flag`). The run as a whole: :mod:`pigp_torch.loop.config.schema`.
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Literal
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    Strict,
-    ValidationInfo,
-    field_validator,
-    model_validator,
-)
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from pigp_torch.machines.section import Flag as Flag  # re-exported for the schema
+from pigp_torch.machines.section import Integer, Number, Section, resolve_path
+
+#: the names the loop's modules have used (the building blocks live with the machine kinds)
+_Section, _resolve = Section, resolve_path
 
 if TYPE_CHECKING:
     from pigp_torch.simulation.spec import RingSpec
 
-#: A number in a run file: an int or a float, never a boolean or a string (pydantic strict mode;
-#: ``true`` would otherwise run as 1 and ``"0.5"`` be converted).
-Number = Annotated[float, Strict()]
-#: An integer in a run file: never a boolean, a float or a string.
-Integer = Annotated[int, Strict()]
-#: A yes/no value in a run file: ``true`` or ``false`` only (not 1, not "yes" as a string).
-Flag = Annotated[bool, Strict()]
-
-
-class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
 
 # ------------------------------------------------------------------------------------ models
-class SimMachineConfig(_Section):
+class SimMachineConfig(Section):
     r"""The simulated ring: :class:`~pigp_torch.simulation.Spear3Coupling` behind a
     :class:`~pigp_torch.machine.SimulatedMachine` with Gaussian reading noise; the ring is
     described by :meth:`ring_spec` (a :class:`~pigp_torch.simulation.spec.RingSpec`).
@@ -86,7 +72,7 @@ class SimMachineConfig(_Section):
     @field_validator("lattice")
     @classmethod
     def _resolve_lattice(cls, path: Path | None, info: ValidationInfo) -> Path | None:
-        return _resolve(path, info)
+        return resolve_path(path, info)
 
     @model_validator(mode="after")
     def _lattice_and_calibration(self) -> SimMachineConfig:
@@ -136,7 +122,7 @@ class SimMachineConfig(_Section):
         )
 
 
-class EpicsMachineConfig(_Section):
+class EpicsMachineConfig(Section):
     r"""A machine over EPICS Channel Access (:class:`pigp_torch.machine.epics.EpicsMachine`).
 
     PV names are ``setpoint_pvs[knob]`` (default ``knob + setpoint_suffix``) and
@@ -188,56 +174,3 @@ class EpicsMachineConfig(_Section):
                 f"observable_pvs {sorted(pvs or {})}, got {sorted(units)}"
             )
         return self
-
-
-class AresSimConfig(_Section):
-    r"""The simulated ARES-EA linac segment (DESY): one published trial tracked through Cheetah
-    behind :class:`~pigp_torch.machine.ares.AresMachine` (five magnets, one screen).
-
-    The run's knobs must be the five ARES knobs in the segment's order (``AREAMQZM1``,
-    ``AREAMQZM2``, ``AREAMCVM1``, ``AREAMQZM3``, ``AREAMCHM1``: k1 in 1/m², angles in rad) with
-    bounds inside the magnets' ranges; each reading measures the four beam numbers on the screen
-    (:math:`\mu_x, \sigma_x, \mu_y, \sigma_y` in m, the run's *observables*) and returns the
-    objective the method reads (``ares-physics``: the mean absolute error to the trial's target in
-    m, minimized; ``published-nm``: that error with a 100× weight off the screen, minimized;
-    any other method: the published BO's reward, maximized). These checks need the simulation
-    and the method registry and are made by :func:`pigp_torch.loop.run.validate_config`.
-
-    Attributes:
-        trial: the trial's key in the trials file (required; the incoming beam, misalignments
-            and target of the simulated machine).
-        trials: a trials file in the published YAML format (relative paths from the run file's
-            folder); default ``None``: the shipped trials 0–149.
-        noise: screen noise, the standard deviation of each of the four beam numbers (m,
-            default 0: noise-free as published).
-        seed: seed of the noise stream.
-        model_error: the wrong-model case of the simulated machine (default ``"none"``: the
-            trial as published; :data:`~pigp_torch.simulation.ares_cases.MODEL_ERROR_CASES`).
-        x_init: knob values the machine starts at, by knob name (unlisted knobs: the published
-            start 10, −10, 0, 10, 0).
-    """
-
-    kind: Literal["ares-sim"]
-    trial: Integer
-    trials: Path | None = None
-    noise: Number = Field(0.0, ge=0.0)
-    seed: Integer = 0
-    model_error: str = "none"
-    x_init: dict[str, Number] | None = None
-
-    @field_validator("trials")
-    @classmethod
-    def _resolve_trials(cls, path: Path | None, info: ValidationInfo) -> Path | None:
-        return _resolve(path, info)
-
-
-MachineConfig = Annotated[
-    SimMachineConfig | AresSimConfig | EpicsMachineConfig, Field(discriminator="kind")
-]
-
-
-def _resolve(path: Path | None, info: ValidationInfo) -> Path | None:
-    base = (info.context or {}).get("base_dir")
-    if path is None or path.is_absolute() or base is None:
-        return path
-    return Path(os.path.normpath(Path(base) / path))  # "a/../b" -> "b" (plain text, no I/O)

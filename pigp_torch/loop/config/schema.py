@@ -15,12 +15,14 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
       02G-QSS3: [-30, 30]
     objective: {maximize: true}   # epics: {pv: SPEAR:BeamLossRate, maximize: true}
     method: {name: nelder-mead, options: {initial_simplex_size: 0.05}}
-    prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match
+    prior: prior.json             # a PhysicsPrior file (needed by pigp), knobs must match, or
+                                  # builtin:spear3, the SPEAR3 prior shipped with the package
     budget: 60
     max_step: 0.1                 # required: fraction of each knob's half-range, {knob: value},
                                   # or the word unlimited (no step limit, deliberately)
     log: runs/sim.jsonl           # the run log (JSON lines)
     restore: initial              # or best (set the best observed point at the end)
+    restore_timeout: 30           # s the restore keeps trying (a stall, an IOC restart)
     read_retries: 2
     # objective_noise: 0.04       # one reading's noise; epics without it: measured at the
     # noise_reads: 5              #   start from this many readings at the initial setting
@@ -56,6 +58,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -69,17 +72,17 @@ from pydantic import (
 )
 
 from pigp_torch._utils import DTYPE, max_step_tensor
+from pigp_torch.data import BUILTIN_PREFIX, builtin_prior
 from pigp_torch.loop.config.machines import (
-    AresSimConfig,
     EpicsMachineConfig,
     Flag,
     Integer,
-    MachineConfig,
     Number,
     SimMachineConfig,
     _resolve,
     _Section,
 )
+from pigp_torch.loop.config.sections import MachineConfig
 
 
 class ConfigError(ValueError):
@@ -111,13 +114,14 @@ class RunConfig(_Section):
     r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
 
     Attributes:
-        machine: :class:`SimMachineConfig`, :class:`AresSimConfig` or
-            :class:`EpicsMachineConfig` (by ``kind``).
+        machine: :class:`SimMachineConfig`, :class:`EpicsMachineConfig` or a machine kind's
+            section (``ares-sim``), by ``kind`` (:mod:`~pigp_torch.loop.config.sections`).
         knobs: ``{name: (lower, upper)}`` in knob order.
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
         prior: a :class:`~pigp_torch.prior.PhysicsPrior` JSON file (required by the methods
-            built from the physics prior).
+            built from the physics prior), or ``builtin:NAME``, a prior shipped with the package
+            (:data:`pigp_torch.data.BUILTIN_PRIORS`: ``builtin:spear3``, the 13 windings).
         budget: evaluations, the start point included.
         max_step: largest change of a knob per ``set`` (required): a fraction of each knob's
             half-range, ``{knob: absolute}``, or ``"unlimited"`` (no step limit).
@@ -139,6 +143,9 @@ class RunConfig(_Section):
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
+        restore_timeout: the restore's window, seconds (default 30, at most 3600): attempts go
+            on until ``restore_attempts`` were made and this long has passed since the first, so
+            a network stall or an IOC restart shorter than it still ends restored.
         lock_dir: folder of the machine locks (default ``$PIGP_LOCK_DIR`` or
             ``<tmp>/pigp-locks``; see :mod:`pigp_torch.data.runlock`).
         objective_unit: unit of the objective's readings, printed and drawn with every number
@@ -164,6 +171,7 @@ class RunConfig(_Section):
     readback_tolerance: Number = Field(1e-3, ge=0.0)
     restore_attempts: Integer = Field(3, ge=1, le=100)
     restore_interval: Number = Field(1.0, ge=0.0)
+    restore_timeout: Number = Field(30.0, ge=0.0, le=3600.0)
     lock_dir: Path | None = None
     objective_unit: str = Field("mA/min", min_length=1)
     knob_unit: str = Field("A", min_length=1)
@@ -183,6 +191,11 @@ class RunConfig(_Section):
                 f"{value!r} is not a step limit: give a number, a {{knob: value}} mapping, or "
                 "the word unlimited (no step limit)"
             )
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(
+                f"{value} is not a step limit: give a finite fraction of each knob's half-range "
+                "(e.g. 0.1), or write unlimited to run without a step limit"
+            )
         return value
 
     @field_validator("knobs")
@@ -200,6 +213,8 @@ class RunConfig(_Section):
     @field_validator("prior", "log", "lock_dir")
     @classmethod
     def _resolve_paths(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        if info.field_name == "prior" and str(path).startswith(BUILTIN_PREFIX):
+            return builtin_prior(str(path))  # a prior shipped with the package
         return _resolve(path, info)
 
     @model_validator(mode="after")
@@ -235,10 +250,10 @@ class RunConfig(_Section):
         m = self.machine
         if isinstance(m, SimMachineConfig) and isinstance(m.knob_calibration, dict):
             _same_knobs("machine.knob_calibration", m.knob_calibration, names)
-        if isinstance(m, (SimMachineConfig, AresSimConfig)):
+        if not isinstance(m, EpicsMachineConfig):  # a simulated machine
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
-            for name, value in (m.x_init or {}).items():
+            for name, value in (getattr(m, "x_init", None) or {}).items():  # a kind may have none
                 if name not in self.knobs:
                     raise ValueError(f"machine.x_init: {name!r} is not a configured knob")
                 lo, hi = self.knobs[name]
@@ -313,6 +328,8 @@ class RunConfig(_Section):
             f"max_step: {self.max_step}",
             f"restore: {self.restore}; objective floor: {floor}; read retries: "
             f"{self.read_retries}; readback tolerance: {self.readback_tolerance:g} of the range",
+            f"restore window: {self.restore_timeout:g} s ({self.restore_attempts} attempt(s) "
+            f"at least, {self.restore_interval:g} s apart)",
         ]
 
     def get_prior(self):

@@ -13,15 +13,22 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.data.runlog import file_sha256
 from pigp_torch.loop.config import (
-    AresSimConfig,
     ConfigError,
     EpicsMachineConfig,
     RunConfig,
     SimMachineConfig,
     config_digest,
 )
-from pigp_torch.loop.run.ares import build_ares_machine
+from pigp_torch.machines import KINDS, MachineKind
 from pigp_torch.methods import METHODS, RunContext
+
+
+def machine_kind(config: RunConfig) -> MachineKind | None:
+    """The machine kind whose run-file section ``config.machine`` is, when it is not one of the
+    loop's own (``sim``, ``epics``); ``None`` for those."""
+    if isinstance(config.machine, (SimMachineConfig, EpicsMachineConfig)):
+        return None
+    return KINDS.by_run_file_kind(config.machine.kind)
 
 
 class _BoundedSim:
@@ -44,9 +51,10 @@ def build_optimizer(config: RunConfig, machine=None):
 
     The registry's builder of ``config.method.name`` with the run's options, bounds, seed and
     direction; no noise level (each optimizer keeps its own default, or ``noise`` from the
-    options) and no archive (a live machine has none). On ``kind: ares-sim`` the builder is
-    given the simulated machine (``machine``, or one built from ``config``: a simulation, nothing
-    to connect), whose target the ARES methods read, and the screen noise (m; ``None`` when 0).
+    options) and no archive (a live machine has none). On a machine kind's section (``kind:
+    ares-sim``) the builder is given the kind's simulated machine (``machine``, or one built from
+    ``config``: a simulation, nothing to connect), whose target the kind's methods read, and the
+    section's reading noise (``noise``; ``None`` when 0).
 
     Raises:
         ConfigError: the builder refused an option value.
@@ -54,8 +62,9 @@ def build_optimizer(config: RunConfig, machine=None):
     name = config.method.name
     spec = METHODS[name].with_options(**config.method.options)
     noise = None
-    if isinstance(config.machine, AresSimConfig):
-        machine = build_ares_machine(config) if machine is None else machine
+    kind = machine_kind(config)
+    if kind is not None:
+        machine = kind.simulated_machine(config) if machine is None else machine
         noise = config.machine.noise if config.machine.noise > 0 else None
     ctx = RunContext(
         machine=machine,
@@ -108,8 +117,9 @@ def _ring(config: RunConfig, loss_rate_map):
 def build_machine(config: RunConfig):
     r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
     names, bounds, m = config.knob_names, config.bounds(), config.machine
-    if isinstance(m, AresSimConfig):
-        return build_ares_machine(config)
+    kind = machine_kind(config)
+    if kind is not None:
+        return kind.simulated_machine(config)
     tolerance = m.tolerance if isinstance(m, EpicsMachineConfig) else None
     if isinstance(m, EpicsMachineConfig) and m.tolerance_fraction is not None:
         tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
@@ -125,7 +135,7 @@ def build_machine(config: RunConfig):
         if outside:
             raise ConfigError(
                 f"knobs {outside}: bounds outside the simulator's range "
-                f"[{float(sim.bounds[0, 0])}, {float(sim.bounds[1, 0])}]"
+                f"[{float(sim.bounds[0, 0]):g}, {float(sim.bounds[1, 0]):g}] {config.knob_unit}"
             )
         x_init = torch.tensor([(m.x_init or {}).get(n, 0.0) for n in names], dtype=DTYPE)
         x_init = torch.minimum(torch.maximum(x_init, bounds[0]), bounds[1])  # 0 may lie outside
@@ -263,6 +273,7 @@ class RunSetup:
             readback_tol=c.readback_tolerance,
             restore_attempts=c.restore_attempts,
             restore_interval=c.restore_interval,
+            restore_timeout=c.restore_timeout,
             noise=self.stated_noise(),
             objective_range=c.objective_range,
             noise_reads=c.noise_reads if self.measures_noise() else 0,
@@ -287,12 +298,12 @@ class RunSetup:
 
 def build_run(config: RunConfig) -> RunSetup:
     r"""Build a run from a validated configuration: the prior's provenance, then the optimizer
-    (bad option values raise :class:`ConfigError` here), then — last — the machine. On
-    ``kind: ares-sim`` the simulated machine comes first (a simulation: nothing is connected or
-    moved), as the ARES methods are built from its target.
+    (bad option values raise :class:`ConfigError` here), then — last — the machine. On a machine
+    kind's section (``kind: ares-sim``) the simulated machine comes first (a simulation: nothing
+    is connected or moved), as the kind's methods are built from its target.
     """
     info = prior_record(config)
-    if isinstance(config.machine, AresSimConfig):
+    if machine_kind(config) is not None:
         machine = build_machine(config)
         return RunSetup(config, build_optimizer(config, machine), machine, info)
     optimizer = build_optimizer(config)

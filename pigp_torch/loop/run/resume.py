@@ -78,14 +78,14 @@ def advance_simulated_noise(machine, n_reads: int) -> None:
     A :class:`~pigp_torch.machine.SimulatedMachine` draws one normal variate per reading from its
     seeded generator; taking ``n_reads`` readings (through the public :meth:`read`, the knobs
     unmoved) moves the stream on exactly as many draws, so a resumed simulated run sees the noise
-    an uninterrupted one would have. The simulated ARES-EA screen
-    (:class:`~pigp_torch.machine.ares.AresMachine`) draws four per reading and is moved on the
-    same way (:meth:`~pigp_torch.machine.ares.AresMachine.read_observables`). Other machines are
-    left alone.
+    an uninterrupted one would have. A machine kind's simulated machine with more than one draw
+    per reading (the ARES-EA screen: four) says so with ``advance_noise(n_reads)``, which moves
+    its stream on the same way. Other machines are left alone.
     """
-    from pigp_torch.machine.ares import AresMachine
-
-    if isinstance(machine, (SimulatedMachine, AresMachine)) and machine.noise > 0:
-        take = machine.read_observables if isinstance(machine, AresMachine) else machine.read
+    if isinstance(machine, SimulatedMachine) and machine.noise > 0:
         for _ in range(int(n_reads)):
-            take()
+            machine.read()
+        return
+    advance = getattr(machine, "advance_noise", None)
+    if advance is not None:
+        advance(int(n_reads))

@@ -1,8 +1,9 @@
 r"""A run file checked as a whole: the schema (:mod:`pigp_torch.loop.config`), then the method
 against the registry (:mod:`pigp_torch.methods`: a run-file method, known options, a prior file and
-a maximized objective for the methods built from the physics prior), then the ARES-EA parts
-(:func:`~pigp_torch.loop.run.ares.check_ares`), then the prior file (its knobs must be the run's,
-same names in the same order).
+a maximized objective for the methods built from the physics prior), then every machine kind's
+checks (:meth:`pigp_torch.machines.MachineKind.check_run`: a kind's methods run on its machine
+only; its section against its simulation), then the prior file (its knobs must be the run's, same
+names in the same order).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from pigp_torch.loop.config import RunConfig, invalid, parse_config, read_run_file
-from pigp_torch.loop.run.ares import check_ares
+from pigp_torch.machines import KINDS
 from pigp_torch.methods import METHODS, run_file_methods
 from pigp_torch.prior import PhysicsPrior
 
@@ -130,7 +131,8 @@ def validate_config(data: Any, *, base_dir: str | Path | None = None, source: st
     config = parse_config(data, base_dir=base_dir, source=source)
     try:
         check_method(config)
-        check_ares(config)
+        for kind in KINDS.values():
+            kind.check_run(config, METHODS[config.method.name])
         if config.prior is not None:
             config.attach_prior(load_prior(config.prior, config.knob_names))
     except ValueError as err:

@@ -2,7 +2,7 @@ r"""The paper's physics prior on the ARES-EA task, from the segment's differenti
 
 The GP methods that need a physics prior (``pigp``, ``pigp-fast``: :data:`ARES_PRIOR_METHODS`)
 run on ARES with the prior of :func:`~pigp_torch.prior.machine_model.prior_from_machine_model`
-of :func:`~pigp_torch.methods.ares.ares_machine_model` for the trial's target: the model's
+of :func:`~.methods.ares_machine_model` for the trial's target: the model's
 optimum :math:`x_0` for the target at the unknowns' centre (the middle of the ranges the trials
 were drawn from; a trial's own incoming beam and misalignments are never used), the autograd
 Hessian of :math:`\log(g_\infty - g)` there (:math:`g` the model's smoothed MAE to the target,
@@ -72,9 +72,9 @@ def _cached_prior(target: tuple[float, ...], noise: float, n_ensemble: int):
 
 
 def ares_model_um(target):
-    """:func:`~pigp_torch.methods.ares.ares_machine_model` for ``target`` (``4`` numbers, m) with
+    """:func:`~.methods.ares_machine_model` for ``target`` (``4`` numbers, m) with
     its goal (the smoothed MAE) in µm; knobs, observables and unknowns unchanged."""
-    from pigp_torch.methods.ares import ares_machine_model
+    from pigp_torch.machines.ares_ea.methods import ares_machine_model
 
     model = ares_machine_model(torch.as_tensor(target, dtype=DTYPE).reshape(-1))
     goal_m = model.goal

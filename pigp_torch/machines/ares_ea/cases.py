@@ -29,7 +29,7 @@ from dataclasses import replace
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.simulation.ares import (
+from pigp_torch.machines.ares_ea.simulation import (
     INCOMING_NAMES,
     KNOB_NAMES,
     AresSegment,

@@ -1,6 +1,6 @@
 r"""Methods of the ARES-EA task (DESY linac, five magnets, one screen).
 
-* ``published-bo``: the published BO recipe (:class:`~pigp_torch.optimizers.ares_published.
+* ``published-bo``: the published BO recipe (:class:`~.published.
   PublishedAresBO`): unidirectional quadrupoles, knobs scaled to [−3, 3], the start and 4 uniform
   samples in a ±0.3 box around it, then SingleTaskGP + EI + ``optimize_acqf`` in the ±0.3 box
   around the last sample; maximizes the machine's ``"reward"`` objective.
@@ -11,22 +11,26 @@ r"""Methods of the ARES-EA task (DESY linac, five magnets, one screen).
   published run minimized the step-to-step change of that distance (a "differential" reward); here
   the distance itself is minimized, which makes the objective stationary.
 
-:data:`ARES_METHOD_OBJECTIVE` says which machine objective (:data:`~pigp_torch.machine.ares.
+:data:`ARES_METHOD_OBJECTIVE` says which machine objective (:data:`~.machine.
 ARES_OBJECTIVES`) each method reads; a method not listed reads ``"reward"``.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.methods.registry import RunContext
+from pigp_torch.machines.ares_ea.published import PublishedAresBO
+from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES, START_SETTING, knob_bounds
 from pigp_torch.optimizers import NelderMead
-from pigp_torch.optimizers.ares_published import PublishedAresBO
-from pigp_torch.simulation.ares import INCOMING_NAMES, START_SETTING, knob_bounds
+
+if TYPE_CHECKING:  # the registry imports this module while it registers the kind's methods
+    from pigp_torch.methods.registry import RunContext
 
 #: The machine objective each ARES method reads (``read()`` of
-#: :class:`~pigp_torch.machine.ares.AresMachine`).
+#: :class:`~.machine.AresMachine`).
 ARES_METHOD_OBJECTIVE: dict[str, str] = {
     "published-bo": "reward",
     "published-nm": "distance",
@@ -86,7 +90,12 @@ def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_
     ranges. ``center`` and ``half_width``: the middle and half width of the ranges the trials
     were drawn from, and ``1 ± quad_gain_half_width`` (default 0.05) for the gains.
     """
-    from pigp_torch.simulation.ares import INCOMING_NAMES, KNOB_NAMES, AresSegment, load_lattice
+    from pigp_torch.machines.ares_ea.simulation import (
+        INCOMING_NAMES,
+        KNOB_NAMES,
+        AresSegment,
+        load_lattice,
+    )
 
     lattice = load_lattice() if lattice is None else lattice
     segment = AresSegment(lattice) if segment is None else segment
@@ -143,13 +152,13 @@ def ares_machine_model(
     :func:`ares_model_parts` (the incoming beam and misalignments with the ranges the trials were
     drawn from, and the quadrupoles' gains ``1 ± quad_gain_half_width``; no gains with 0), and the
     goal :func:`smooth_mae` to ``target`` (``4`` numbers, m) with residual ``o - target``."""
-    from pigp_torch.prior.machine_model import MachineModel
-    from pigp_torch.simulation.ares import (
+    from pigp_torch.machines.ares_ea.simulation import (
         KNOB_NAMES,
         KNOB_UNITS,
         MISALIGNMENT_NAMES,
         OBSERVABLE_NAMES,
     )
+    from pigp_torch.prior.machine_model import MachineModel
 
     model, center, half = ares_model_parts(segment, lattice, quad_gain_half_width)
     gains = tuple(f"{q}_gain" for q in ARES_CALIBRATED_QUADS)[: len(center) - 16]
@@ -228,4 +237,38 @@ def build_ares_physics(
         seed=ctx.seed,
         maximize=ctx.maximize,
         **options,
+    )
+
+
+def register_ares_methods(register) -> None:
+    """Register ``published-bo``, ``published-nm`` and ``ares-physics`` with ``register`` (the
+    method registry's): methods of the ARES-EA linac (``machine="ares-ea"``), in run files on
+    ``machine: {kind: ares-sim}`` only."""
+    from pigp_torch.methods.registry import MethodSpec
+    from pigp_torch.optimizers.model_check import CheckedModelOptimizer
+    from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+
+    ares = {"machine": "ares-ea", "run_file": True}
+    register(
+        MethodSpec(
+            "published-bo",
+            build_published_bo,
+            "gp",
+            forwards_to=(PublishedAresBO,),
+            fixed=("x0", "seed"),
+            **ares,
+        )
+    )
+    register(
+        MethodSpec("published-nm", build_published_nm, "direct", forwards_to=(NelderMead,), **ares)
+    )
+    register(
+        MethodSpec(
+            "ares-physics",
+            build_ares_physics,
+            "gp",
+            forwards_to=(CheckedModelOptimizer, FittedModelOptimizer),
+            fixed=("model", "goal", "theta_center", "theta_half_width", "residual", "seed"),
+            **ares,
+        )
     )

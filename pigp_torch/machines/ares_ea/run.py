@@ -3,7 +3,7 @@ file against the simulation and the method registry (:func:`check_ares`) and its
 (:func:`build_ares_machine`).
 
 The objective the machine returns is the one the method reads
-(:func:`~pigp_torch.methods.ares.ares_objective_for`: ``ares-physics`` the mean absolute error
+(:func:`~.methods.ares_objective_for`: ``ares-physics`` the mean absolute error
 to the target, ``published-nm`` the beam distance, both in m and minimized; every other method
 the published BO's reward, dimensionless and maximized). The run file's ``objective.maximize``
 may be left out (it is then the objective's direction) or must agree with it; its
@@ -16,7 +16,8 @@ from __future__ import annotations
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.loop.config import AresSimConfig, RunConfig
+from pigp_torch.loop.config import RunConfig
+from pigp_torch.machines.ares_ea.section import AresSimConfig
 
 #: The run's knob unit on ARES-EA when the run file names none (three quadrupoles' k1 and two
 #: correctors' angles; the log header keeps each knob's own unit).
@@ -27,7 +28,7 @@ ARES_OBJECTIVE_UNITS = {"reward": "1", "distance": "m", "mae": "m"}
 
 def ares_objective_name(config: RunConfig) -> str:
     """The machine objective of an ARES run: the one its method reads."""
-    from pigp_torch.methods.ares import ares_objective_for
+    from pigp_torch.machines.ares_ea.methods import ares_objective_for
 
     return ares_objective_for(config.method.name)
 
@@ -44,10 +45,10 @@ def check_ares(config: RunConfig) -> None:
     Raises:
         ValueError: the first problem found (its message names the key).
     """
-    from pigp_torch.machine.ares import ARES_OBJECTIVES
+    from pigp_torch.machines.ares_ea.cases import check_case
+    from pigp_torch.machines.ares_ea.machine import ARES_OBJECTIVES
+    from pigp_torch.machines.ares_ea.simulation import KNOB_NAMES, KNOB_UNITS, knob_bounds
     from pigp_torch.methods import METHODS
-    from pigp_torch.simulation.ares import KNOB_NAMES, KNOB_UNITS, knob_bounds
-    from pigp_torch.simulation.ares_cases import check_case
 
     m, spec = config.machine, METHODS[config.method.name]
     if spec.machine == "ares-ea" and not isinstance(m, AresSimConfig):
@@ -98,7 +99,7 @@ def check_ares(config: RunConfig) -> None:
 
 
 def _check_trial(m: AresSimConfig) -> None:
-    from pigp_torch.simulation.ares import load_trials
+    from pigp_torch.machines.ares_ea.simulation import load_trials
 
     where = "the shipped trials" if m.trials is None else str(m.trials)
     try:
@@ -113,13 +114,13 @@ def _check_trial(m: AresSimConfig) -> None:
 
 
 def build_ares_machine(config: RunConfig):
-    r"""The :class:`~pigp_torch.machine.ares.AresMachine` of an ``ares-sim`` run: the trial
+    r"""The :class:`~.machine.AresMachine` of an ``ares-sim`` run: the trial
     (changed by ``model_error``), the method's objective, the screen noise and its seed, the
     run's bounds and step limit, starting at ``x_init`` (unlisted knobs: the published start,
     moved inside the run's bounds)."""
-    from pigp_torch.machine.ares import AresMachine
-    from pigp_torch.simulation.ares import START_SETTING, load_trials
-    from pigp_torch.simulation.ares_cases import case_machine_parts
+    from pigp_torch.machines.ares_ea.cases import case_machine_parts
+    from pigp_torch.machines.ares_ea.machine import AresMachine
+    from pigp_torch.machines.ares_ea.simulation import START_SETTING, load_trials
 
     m, names, bounds = config.machine, config.knob_names, config.bounds()
     trial, segment = load_trials(m.trials)[m.trial], None

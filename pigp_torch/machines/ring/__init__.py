@@ -1,0 +1,71 @@
+r"""The storage-ring machine kind: SPEAR3 (the shipped decks, 13 skew windings in A) or any ring
+given as a lattice file, its coupling tuned on the Touschek loss rate.
+
+The ring's simulation library is :mod:`pigp_torch.simulation` (pyAT, the fast linear model, the
+error ensemble); this folder holds what makes it a machine kind: the ring as a
+:class:`~pigp_torch.prior.machine_model.MachineModel` (:mod:`.model`) and the plug-in
+:data:`KIND` that :data:`pigp_torch.machines.KINDS` lists as ``"spear3"``. Its run-file section is
+the loop's ``machine: {kind: sim}`` (:class:`~pigp_torch.loop.config.SimMachineConfig`), its
+benchmark the "spear3-13" protocol (:func:`pigp_torch.benchmark.run_benchmark`). This module
+imports nothing heavy (the registry imports it to find the kind).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pigp_torch.machines.kind import MachineKind
+
+
+class RingKind(MachineKind):
+    r"""The ring kind: ``model(error_seed=0)`` is the model ring's
+    :class:`~pigp_torch.prior.machine_model.MachineModel` (:func:`.model.ring_machine_model`),
+    ``simulator(error_seed=1)`` a :class:`~pigp_torch.simulation.Spear3Coupling` (or, with
+    ``ring``, a :class:`~pigp_torch.simulation.spec.RingSpec`'s ring)."""
+
+    name = "spear3"
+    run_file_kind = "sim"
+    default_method = "pigp-physics"
+    title = "SPEAR3 storage ring (or any lattice): skew windings, Touschek loss rate"
+
+    def simulator(self, *, error_seed: int = 1, ring=None, **options: Any):
+        r"""The simulated ring with error seed ``error_seed``: ``ring.build(error_seed,
+        **options)`` of a :class:`~pigp_torch.simulation.spec.RingSpec`, default
+        ``Spear3Coupling(error_seed, **options)`` (``knobs``, ``optics``, ``loss_rate_map``)."""
+        if ring is not None:
+            return ring.build(int(error_seed), **options)
+        from pigp_torch.simulation import Spear3Coupling
+
+        return Spear3Coupling(int(error_seed), **options)
+
+    def model(self, *, error_seed: int = 0, sim=None, coupling_half_width=None, **options: Any):
+        r"""The machine model of the model ring ``sim`` (default :meth:`simulator` of
+        ``error_seed``, default 0 as the benchmark's model; ``options`` go there), with
+        coupling errors of half width ``coupling_half_width`` (control units, default a quarter
+        of each knob's limit)."""
+        from pigp_torch.machines.ring.model import ring_machine_model
+
+        sim = self.simulator(error_seed=error_seed, **options) if sim is None else sim
+        return ring_machine_model(sim, coupling_half_width)
+
+    def section(self) -> type:
+        from pigp_torch.loop.config.machines import SimMachineConfig
+
+        return SimMachineConfig
+
+    def simulated_machine(self, config):
+        """The simulated ring of a ``kind: sim`` run file
+        (:func:`pigp_torch.loop.run.build_machine`)."""
+        from pigp_torch.loop.run import build_machine
+
+        return build_machine(config)
+
+    def benchmark(self, **options: Any):
+        """The "spear3-13" benchmark (:func:`pigp_torch.benchmark.run_benchmark`)."""
+        from pigp_torch.benchmark import run_benchmark
+
+        return run_benchmark(**options)
+
+
+#: The plug-in of this kind.
+KIND = RingKind()
