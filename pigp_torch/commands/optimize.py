@@ -71,11 +71,14 @@ DESCRIPTION = (
     "One run per run log and per machine (lock files). --resume LOG continues a logged run "
     "and restores to the knobs of its first start; --dry-run only prints the plan. "
     "Ramps and restores work on the SETPOINTS (never from readbacks; no put above max_step). "
-    "A reading counts only if finite, inside objective_range (default: the objective PV's "
-    "limits) and, with objective_noise, confirmed by a re-read when far from the run's own "
+    "A reading counts only if finite, not in alarm (INVALID; MAJOR with machine: "
+    "refuse_severity: MAJOR), inside objective_range (default: the objective PV's "
+    "limits) and, with objective_noise (on EPICS without it: measured at the start from "
+    "noise_reads readings), confirmed by a re-read when far from the run's own "
     "(the first reading always); with restore: best a control reading at the first "
     "evaluation's point and fresh readings at the best point must reproduce their logged "
-    "values (either direction), else the initial knobs are restored and no best is reported."
+    "values (either direction) and not read worse than the control reading, else the "
+    "initial knobs are restored and no best is reported."
 )
 
 EXIT_HELP = """rules:

@@ -77,9 +77,8 @@ def print_plan(setup, records, out) -> None:
     )
     opts = setup.options()
     rng = opts.objective_range or getattr(setup.machine, "objective_limits", None)
-    noise = f"{k * opts.noise:g} {yu}" if opts.noise is not None else "not stated"
-    noise += "" if opts.noise is not None else ": no re-read of outliers"
     rng_text = "none" if rng is None else f"[{k * rng[0]:g}, {k * rng[1]:g}] {yu}"
+    noise = noise_in_force(setup, records)
     print(f"  readings: objective range {rng_text}; reading noise {noise}", file=out)
     if setup.prior_info:
         p = setup.prior_info
@@ -92,6 +91,27 @@ def print_plan(setup, records, out) -> None:
         )
     else:
         print(f"  run log {c.log}", file=out)
+
+
+def noise_in_force(setup, records) -> str:
+    """The reading noise a run uses and where it comes from, with its unit (the plan's)."""
+    from pigp_torch.loop.noise import NOISE_FLOOR_REL, logged_noise
+
+    c, opts = setup.config, setup.options()
+    k, yu = display_unit(c.objective_unit)
+    if opts.noise is not None:
+        where = "objective_noise" if c.objective_noise is not None else (
+            "the simulator's" if c.machine.kind == "sim" else "the prior's")  # fmt: skip
+        return f"{k * opts.noise:g} {yu} (stated: {where})"
+    logged = logged_noise(records) if records is not None else None
+    if logged is not None:
+        return f"{k * logged['sigma']:.4g} {yu} (measured at the run's first start; from the log)"
+    if opts.noise_reads:
+        return (
+            f"measured at the start: the standard deviation of {opts.noise_reads} readings at "
+            f"the initial setting (at least {NOISE_FLOOR_REL:.0%} of their mean), in {yu}"
+        )
+    return "not stated: no re-read of outliers"
 
 
 def say(out, text: str = "") -> None:
@@ -134,6 +154,11 @@ def print_summary(path: Path, out, log=None) -> dict | None:
         start = records.starts[-1] if records.starts else {}
         session = records.n_evaluations - int(start.get("first_step", 0))
         say(out, f"evaluations: {records.n_evaluations} logged ({session} in this session)")
+        noise = start.get("noise")
+        if isinstance(noise, dict) and noise.get("source") == "measured":
+            say(out, f"reading noise: {k * noise['sigma']:.4g} {yu}, measured at the start "
+                     f"from {noise['n']} readings (mean {k * noise['mean']:.6g} {yu}, standard "
+                     f"deviation {k * noise['spread']:.3g} {yu})")  # fmt: skip
     best = end.get("best")
     if best:
         say(

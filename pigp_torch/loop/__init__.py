@@ -47,7 +47,11 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    before), is read again at the same setting and kept only if the re-read agrees within
    :math:`4\sqrt2\,\sigma` (the value is their mean); otherwise it is discarded (logged). A
    genuine improvement repeats, a glitch does not; a discarded reading never becomes an
-   evaluation or the best.
+   evaluation or the best. Without a stated noise, ``noise_reads`` (> 0) readings at the setting
+   found measure it before the first evaluation (:mod:`~pigp_torch.loop.noise`; logged in the
+   start record, reused on a resume). A reading the machine refuses for its alarm severity
+   (``SeverityError``: INVALID, or MAJOR by option) is discarded and read again; one that stays
+   so stops the run naming the PV and the severity.
    *Readings checked against the machine's state* (``check_readings``, default on): the knob
    readbacks (``get()``) must lie within the readback tolerance of the setting before *and*
    after each reading (the machine's ``tolerance`` when it has one, else ``readback_tol`` of
@@ -88,7 +92,8 @@ and, on a :class:`~pigp_torch.machine.base.Machine`, enforces the safety rules b
    read again 3 times; it is confirmed if their mean agrees with the best of the run's
    :math:`N` readings within :math:`s(\sqrt{2\ln N} + 4\sqrt{1 + 1/3})` in either direction
    and, with the noise stated, the 3 agree with each other (:math:`s = \sigma`; without it a
-   rough scale from the readings: see :mod:`pigp_torch.loop.readings`). If either check fails,
+   rough scale from the readings: see :mod:`pigp_torch.loop.readings`), and their mean is not
+   worse than the control reading (never left below the start). If any check fails,
    or a point cannot be reached, the run says so (a warning and a ``notice`` record), restores
    the initial knobs instead (``restored_to = "initial (best not confirmed)"``) and reports no
    best (the end record's ``best`` is null, ``rejected_best`` names it).

@@ -3,8 +3,9 @@ point after a control reading and its confirmation), the end record, and the res
 
 Restore rules: after a failure the initial knobs are set back (unless ``restore="none"``); after a
 completed run ``restore`` decides (``"initial"``, ``"best"``: a control reading at the first
-evaluation's point, then the best point confirmed by fresh readings, else the initial knobs;
-``"none"``). The knobs are then read back (readbacks and setpoints) for the end record.
+evaluation's point, then the best point confirmed by fresh readings that read no worse than the
+control reading, else the initial knobs; ``"none"``). The knobs are then read back (readbacks
+and setpoints) for the end record.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils import utc_now as _utc_now
 from pigp_torch.loop.moves import SETPOINT_TOL, setpoints_of
-from pigp_torch.loop.readings import CONTROL_READS, check_readings, confirm_best
+from pigp_torch.loop.readings import CONTROL_READS, below_start, check_readings, confirm_best
 from pigp_torch.loop.session import Run
 from pigp_torch.loop.signals import classify
 from pigp_torch.loop.steps import best_row
@@ -95,6 +96,11 @@ def _restore_best(run: Run, rows: list[dict], out: Ending, reference) -> None:
                 out.restore_error = KeyboardInterrupt(out.confirmation["message"])
             elif not out.confirmation["confirmed"]:
                 why = f"the best point did not reproduce: {out.confirmation['message']}"
+            else:  # it reproduced: never left at a point that reads worse than the start
+                worse = below_start(out.confirmation, out.control, run.maximize)
+                if worse is not None:
+                    out.confirmation["confirmed"] = False
+                    why = f"the best point reads worse than the start: {worse}"
     if out.restore_error is None and why is None:
         out.restored_to = "best (confirmed)"
     elif not isinstance(out.restore_error, KeyboardInterrupt):

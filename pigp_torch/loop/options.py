@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 
 RESTORE_MODES = ("initial", "best", "none")
+#: Readings a noise measurement may take (``noise_reads``, when not 0).
+NOISE_READS = (3, 50)
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,10 @@ class RunOptions:
             (:mod:`~pigp_torch.loop.readings`); ``None`` (default): that rule is off.
         objective_range: ``(lower, upper)`` physical range of a reading; a reading outside it
             is discarded (``None``: the machine's ``objective_limits``, if any).
+        noise_reads: with ``noise`` ``None`` on a machine, read the objective this many times
+            at the setting found before the first evaluation and use their spread as the noise
+            (:mod:`~pigp_torch.loop.noise`; a resume takes it from the log); 0 (default): no
+            measurement, else 3 to 50.
 
     Raises:
         ValueError: a value out of its range (at construction).
@@ -58,6 +64,7 @@ class RunOptions:
     check_readings: bool = True
     noise: float | None = None
     objective_range: tuple[float, float] | None = None
+    noise_reads: int = 0
 
     def __post_init__(self) -> None:
         if self.restore not in RESTORE_MODES:
@@ -84,6 +91,11 @@ class RunOptions:
                     f"objective_range must be finite with lower < upper, got {self.objective_range}"
                 )
             object.__setattr__(self, "objective_range", (lo, hi))
+        n = self.noise_reads
+        if int(n) != n or not (n == 0 or NOISE_READS[0] <= n <= NOISE_READS[1]):
+            raise ValueError(f"noise_reads must be 0 or an integer in [{NOISE_READS[0]}, "
+                             f"{NOISE_READS[1]}], got {n}")  # fmt: skip
+        object.__setattr__(self, "noise_reads", int(n))
         object.__setattr__(self, "read_retries", int(self.read_retries))
         object.__setattr__(self, "retry_interval", float(self.retry_interval))
         object.__setattr__(self, "readback_tol", float(self.readback_tol))

@@ -40,6 +40,9 @@ left at the best point :math:`x^*` (logged value :math:`y^*`):
   EITHER direction (a best that reads far better than logged is not the point that was
   measured either), and, with :math:`\sigma` stated, with each other: their range
   :math:`\max - \min \le a\sqrt 2\,\sigma`. Otherwise the run restores the initial knobs.
+* **Not below the start** (:func:`below_start`): the mean of those fresh readings must not be
+  worse than the control reading's at :math:`x_0` (lower when maximizing, higher when
+  minimizing): the knobs are never left at a point that reads worse than where the run began.
 
 A rejected best is not reported as the run's best (the end record names it ``rejected_best``).
 """
@@ -52,7 +55,7 @@ from collections.abc import Callable
 
 import torch
 
-from pigp_torch.machine.errors import ReadError
+from pigp_torch.machine.errors import ReadError, SeverityError
 
 #: Outlier threshold :math:`k` in robust-scale units.
 OUTLIER_K = 5.0
@@ -161,26 +164,28 @@ def plausible_reading(
 ) -> tuple[float, int]:
     r"""A reading the run believes: ``take()`` until one is valid and (if suspicious) confirmed.
 
-    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (checked
-    against the machine's state, reported already), or raises ``ReadError``/``TimeoutError``
-    (a failed attempt) or ``MachineError`` (passed on). A reading invalid under ``judge`` is
-    reported to ``on_discard(reason, y)`` (NaN/inf quietly) and is a failed attempt. A
+    ``take()`` returns one reading, or ``None`` for a reading it discarded itself (reported
+    already), or raises ``ReadError``/``TimeoutError`` (a failed attempt; a ``SeverityError``
+    reported to ``on_discard``) or ``MachineError`` (passed on). A reading invalid under
+    ``judge`` is reported to ``on_discard(reason, y)`` (NaN/inf quietly), a failed attempt. A
     suspicious reading waits for a re-read: a later valid reading that agrees with it confirms
-    it (the value is their mean; other waiting readings are discarded); one that is not
-    suspicious itself is kept and the waiting ones are discarded; one that is suspicious and
-    agrees with none waits too, and counts as a failed attempt. At most ``retries`` failed
-    attempts (``interval`` s apart), so at most ``retries + 2`` reads. ``parts()`` (if given)
-    returns the single readings a machine averaged into the last one; each must be valid too.
+    it (the value is their mean; other waiting readings are discarded); one not suspicious
+    itself is kept and the waiting ones are discarded; one suspicious agreeing with none waits
+    too, a failed attempt. At most ``retries`` failed attempts (``interval`` s apart), so at
+    most ``retries + 2`` reads. ``parts()`` (if given): the single readings a machine averaged
+    into the last one; each must be valid too.
 
     Returns:
         ``(y, reads)``: the value and the readings taken.
 
     Raises:
-        ReadError: more than ``retries`` failed attempts.
+        ReadError: more than ``retries`` failed attempts (``SeverityError``, with their count,
+            when all were for a PV's alarm severity).
     """
     problems: list[str] = []
     failures = reads = 0
     pending: list[tuple[float, str]] = []  # suspicious readings waiting for a re-read
+    alarms: list[BaseException] = []  # the errors of the reads that raised
 
     def drop_pending(keep=None, detail: str = "") -> None:
         for y_p, why in pending:
@@ -195,8 +200,7 @@ def plausible_reading(
         try:
             y = take()
         except (ReadError, TimeoutError) as err:  # other MachineErrors end the reading
-            problems.append(f"{type(err).__name__}: {err}")
-            failures += 1
+            failures += _failed_read(err, problems, alarms, on_discard)
             continue
         if y is None:
             problems.append("discarded")
@@ -229,7 +233,28 @@ def plausible_reading(
             failures += 1  # two suspicious readings that disagree
         pending.append((y, why))
     drop_pending(detail=": no re-read agreed")
-    raise ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
+    raise _no_valid_reading(retries, failures, problems, alarms)
+
+
+def _failed_read(err, problems: list, alarms: list, on_discard) -> int:
+    """A read that raised: noted (returns 1, a failed attempt); an objective reading refused for
+    its alarm severity is reported to ``on_discard`` with its value."""
+    problems.append(f"{type(err).__name__}: {err}")
+    alarms.append(err)
+    value = getattr(err, "value", None) if isinstance(err, SeverityError) else None
+    if value is not None and math.isfinite(value):
+        on_discard(str(err), float(value))
+    return 1
+
+
+def _no_valid_reading(retries: int, failures: int, problems: list, alarms: list) -> ReadError:
+    """The error of a reading that failed every attempt: a ``SeverityError`` naming the PV when
+    every failed attempt was refused for its severity (the PV stays in alarm), else a
+    ``ReadError`` listing the problems."""
+    if len(alarms) == failures and all(isinstance(e, SeverityError) for e in alarms):
+        last = alarms[-1]
+        return SeverityError(last.pv, last.severity, last.value, repeated=len(alarms))
+    return ReadError(f"no valid reading in {retries + 1} attempts ({'; '.join(problems)})")
 
 
 #: Fresh readings taken at the best point before the knobs are left there (``restore: best``).
@@ -326,3 +351,24 @@ def confirm_best(
         worse = (y_best - out["mean"]) if maximize else (out["mean"] - y_best)
         out["message"] += "; worse than the best" if worse > 0 else "; better than the best"
     return out
+
+
+def below_start(confirmation: dict, control: dict | None, maximize: bool) -> str | None:
+    r"""Why the best point must not be kept although it reproduced: the mean :math:`\bar y^*` of
+    its fresh readings is worse than the mean :math:`\bar y_0` of the control reading at the
+    start point (:math:`\bar y^* < \bar y_0` when maximizing, :math:`>` when minimizing);
+    ``None`` when it is not, or when either has no mean (no control reading: the best is the
+    start point). Adds ``"control_mean"`` and ``"not_below_start"`` to ``confirmation``."""
+    if control is None or "mean" not in control or "mean" not in confirmation:
+        return None
+    best, start = float(confirmation["mean"]), float(control["mean"])
+    worse = (start - best) if maximize else (best - start)
+    confirmation["control_mean"] = start
+    confirmation["not_below_start"] = bool(worse <= 0)
+    if worse <= 0:
+        return None
+    side = "below" if maximize else "above"
+    return (
+        f"its {len(confirmation['readings'])} fresh reading(s) average {best:.6g}, {side} the "
+        f"control reading {start:.6g} at the start point (by {worse:.3g})"
+    )

@@ -23,6 +23,7 @@ from pigp_torch.loop.moves import (
     restore_knobs,
     setpoints_of,
 )
+from pigp_torch.loop.noise import logged_noise, measure_noise
 from pigp_torch.loop.options import RunOptions
 from pigp_torch.loop.readings import ReadingJudge
 from pigp_torch.loop.steps import knob_columns, logged_initial_knobs, observables_of, run_steps
@@ -60,6 +61,7 @@ class Run:
     judge: ReadingJudge | None = None
     log: RunLog | None = None
     own_log: bool = False
+    noise_info: dict | None = None
     sent: dict = dataclasses.field(
         default_factory=lambda: {"last": None, "acked": None, "step": None, "purpose": "evaluation"}
     )
@@ -237,7 +239,22 @@ def start_run(objective, optimizer, x0, budget: int, *, knob_names, method, resu
     if run.objective_range is None and is_machine:
         run.objective_range = getattr(objective, "objective_limits", None)
     run.judge = ReadingJudge(opts.noise, run.objective_range, readings=[r["y"] for r in logged])
+    _noise_in_force(run, resume)
     return run
+
+
+def _noise_in_force(run: Run, resume) -> None:
+    """The noise of the run's start record: stated, logged by the run resumed (then used), or
+    to be measured at the start (:mod:`~pigp_torch.loop.noise`); ``None``: none."""
+    opts = run.opts
+    if opts.noise is not None:
+        run.noise_info = {"sigma": float(opts.noise), "source": "stated"}
+        return
+    run.noise_info = logged_noise(resume) if isinstance(resume, RunRecords) else None
+    if run.noise_info is not None:
+        run.judge.noise = run.noise_info["sigma"]
+    elif run.is_machine and opts.noise_reads > 0:
+        run.noise_info = {"source": "to measure", "n": opts.noise_reads}
 
 
 def open_log(run: Run, log: RunLog | str | Path | None, resume) -> None:
@@ -270,6 +287,9 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
     if run.logged:
         replay(optimizer, run.logged, progress=progress)
         rows.extend(evaluation_rows(run.logged, run.names, run.label))
+    noise = run.noise_info
+    if noise is not None and noise["source"] == "to measure":  # before anything moves
+        run.noise_info = noise = measure_noise(run, noise["n"])
     objective = run.objective
     run_steps(
         run.evaluate,
@@ -290,4 +310,5 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
         progress=progress,
         objective_floor=run.opts.objective_floor,
         guard=guard,
+        start_fields={} if noise is None else {"noise": noise},
     )

@@ -58,9 +58,10 @@ def observables_of(objective) -> list[float] | None:
     return [float(v) for v in torch.as_tensor(obs, dtype=DTYPE).reshape(-1).tolist()]
 
 
-def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int) -> None:
-    """The start record: the restore target, and the knobs found when they differ from it."""
-    extra = {}
+def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int, extra) -> None:
+    """The start record: the restore target, and the knobs found when they differ from it (and
+    ``extra``, the noise in force)."""
+    extra = dict(extra)
     if x_found is not None and x_found is not x_initial:
         extra["found_knobs"] = x_found.tolist()
     if rb_found is not None:  # the knobs above are setpoints; their readbacks then
@@ -88,12 +89,13 @@ def run_steps(
     progress,
     objective_floor,
     guard: SignalGuard,
+    start_fields=(),
 ) -> None:
-    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`; appends to ``rows`` as
-    it goes. ``observables()`` gives those of the evaluation's reading (the last one taken) or
-    ``None``: they are logged with it and told to an optimizer that fits them."""
+    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`, appended to ``rows``.
+    ``observables()``: those of the evaluation's reading (the last one taken) or ``None``, logged
+    with it and told to an optimizer that fits them; ``start_fields``: in the start record."""
     if log is not None:
-        _log_start(log, x_initial, x_found, rb_found, budget, first)
+        _log_start(log, x_initial, x_found, rb_found, budget, first, start_fields)
     bar = None
     if progress:
         from tqdm.auto import tqdm

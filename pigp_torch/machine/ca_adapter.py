@@ -154,31 +154,45 @@ class CaprotoAdapter:
         The reads are sequential blocking reads: a read costs one round trip, less than
         dispatching parallel replies through caproto's callback thread.
         """
+        return [value for value, _ in self._read_each(names, timeout, None)]
+
+    def read_alarmed(self, names: list[str], timeout: float) -> list[tuple[float, int]]:
+        """``(value, alarm severity)`` of each scalar PV (DBR_TIME reads; severity 0
+        ``NO_ALARM`` .. 3 ``INVALID``); one deadline, as :meth:`read_many`."""
+        return self._read_each(names, timeout, "TIME_DOUBLE")
+
+    def _read_each(self, names: list[str], timeout: float, data_type) -> list[tuple[float, int]]:
+        from caproto import ChannelType
+
+        kind = {} if data_type is None else {"data_type": getattr(ChannelType, data_type)}
         deadline = time.monotonic() + timeout
-        values = []
+        out = []
         for k, name in enumerate(names):
             remaining = deadline - time.monotonic()
             try:
                 if remaining <= 0:
                     raise TimeoutError(f"{timeout:.3g} s used up")
-                response = self._pvs[name].read(timeout=remaining)
-                values.append(float(response.data[0]))
+                response = self._pvs[name].read(timeout=remaining, **kind)
+                severity = int(response.metadata.severity) if kind else 0
+                out.append((float(response.data[0]), severity))
             except self._errors as err:
                 raise MachineError(
                     f"could not read {names[k:]} within {timeout:.3g} s "
                     f"(IOC down or channel disconnected): {type(err).__name__}: {err}"
                 ) from err
-            except (TypeError, IndexError) as err:
+            except (TypeError, IndexError, AttributeError) as err:
                 raise MachineError(f"non-numeric value read from {name}: {err}") from err
-        return values
+        return out
 
-    def read_timed(self, name: str, timeout: float) -> tuple[float, float]:
-        """``(value, CA timestamp in UNIX seconds)`` of one scalar PV (a DBR_TIME read)."""
+    def read_timed(self, name: str, timeout: float) -> tuple[float, float, int]:
+        """``(value, CA timestamp in UNIX seconds, alarm severity)`` of one scalar PV (a
+        DBR_TIME read; severity 0 ``NO_ALARM`` .. 3 ``INVALID``)."""
         from caproto import ChannelType
 
         try:
             response = self._pvs[name].read(timeout=timeout, data_type=ChannelType.TIME_DOUBLE)
-            return float(response.data[0]), float(response.metadata.timestamp)
+            md = response.metadata
+            return float(response.data[0]), float(md.timestamp), int(md.severity)
         except self._errors as err:
             raise MachineError(
                 f"could not read {name} within {timeout:.3g} s "

@@ -31,13 +31,16 @@ every ``stale_poll`` seconds, for at most ``stale_timeout`` seconds, then
 :class:`StaleReadingError` (a ``ReadError``: a frozen objective PV never yields a reading).
 :attr:`EpicsMachine.last_reading` describes the last read (timestamps, polls of stale values).
 A reading that is NaN/inf, times out or finds the channel disconnected is retried, up to
-``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. **get** returns
-the knob readbacks read over CA at that moment (never a cached value); :meth:`setpoints` the
-setpoint PVs likewise. :attr:`EpicsMachine.objective_limits` is the objective PV's range
-(``DRVL``/``DRVH``, else ``LOPR``/``HOPR``; ``None`` where it has neither), which the loop takes
-as the default physical range of a reading. :attr:`EpicsMachine.disconnections` counts the
-channel disconnections seen since the machine connected (a reboot of the IOC, a network cut);
-the loop discards a reading during which it changed.
+``read_retries`` times, ``retry_interval`` seconds apart; then :class:`ReadError`. A reading
+(objective, readback, observable) of alarm severity ``refuse_severity`` (``INVALID``) or worse
+is not valid (:class:`SeverityError`, naming the PV; a readback: not yet at its setpoint).
+**get** returns the knob readbacks read over CA at that moment (never a cached value);
+:meth:`setpoints` the setpoint PVs likewise. :attr:`EpicsMachine.objective_limits` is the
+objective PV's range (``DRVL``/``DRVH``, else ``LOPR``/``HOPR``; ``None`` where it has neither),
+which the loop takes as the default physical range of a reading.
+:attr:`EpicsMachine.disconnections` counts the channel disconnections seen since the machine
+connected (a reboot of the IOC, a network cut); the loop discards a reading during which it
+changed.
 
 **Control limits.** At connection the setpoint PVs' control limits (``DRVL``/``DRVH``, else the
 display limits ``LOPR``/``HOPR`` when the control limits are unset, i.e. both 0) are read; bounds
@@ -64,7 +67,7 @@ from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import GuardedMachine, check_setting, max_step_tensor
 from pigp_torch.machine.ca_adapter import CaprotoAdapter, refuse_outside_control_limits
 from pigp_torch.machine.epics_reads import ObjectiveReader, StaleReadingError  # noqa: F401
-from pigp_torch.machine.errors import MachineError, ReadbackError
+from pigp_torch.machine.errors import MachineError, ReadbackError, SeverityError  # noqa: F401
 
 #: Seconds between readback polls while waiting for the knobs to reach their setpoints.
 READBACK_POLL_S = 0.05
@@ -107,6 +110,8 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
             beam numbers), read once after the objective (default ``None``: none).
         observable_units: ``{name: unit}`` for every name of ``observable_pvs`` (default:
             ``""`` each).
+        refuse_severity: ``"INVALID"`` (default) or ``"MAJOR"``: the alarm severity from
+            which a reading is not valid (:class:`~pigp_torch.machine.errors.SeverityError`).
 
     Raises:
         ValueError: inconsistent names/bounds/options, readbacks outside the bounds at start, or
@@ -155,6 +160,7 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         check_control_limits: bool = True,
         observable_pvs: dict[str, str] | None = None,
         observable_units: dict[str, str] | None = None,
+        refuse_severity: str = "INVALID",
     ) -> None:
         # Everything that can be checked without the control system is checked first.
         names = [str(n) for n in knob_names]
@@ -188,6 +194,7 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         for key, value in (("stale_timeout", self.stale_timeout), ("stale_poll", self.stale_poll)):
             if not (0.0 < value < math.inf):
                 raise ValueError(f"{key} must be positive and finite, got {value}")
+        self.refuse_severity = self._severity_level(refuse_severity)
         self.n_reads = 0
         self.n_invalid_readings = 0
         self.last_reading: dict | None = None
@@ -286,13 +293,6 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
             raise MachineError("the EpicsMachine is closed")
 
     # ------------------------------------------------------------------ CA operations
-    def _read_knobs(self) -> list[float]:
-        values = self._ca.read_many(self.readback_pvs, self.timeout)
-        bad = [pv for pv, v in zip(self.readback_pvs, values, strict=True) if not math.isfinite(v)]
-        if bad:
-            raise MachineError(f"non-finite knob readbacks: {bad}")
-        return values
-
     def get(self) -> torch.Tensor:
         """The knob readbacks read over CA now (``d`` float64).
 
@@ -361,15 +361,16 @@ class EpicsMachine(ObjectiveReader, GuardedMachine):
         if self.settle_time > 0:
             time.sleep(self.settle_time)
         deadline = time.monotonic() + self.timeout
-        while True:
-            rb = torch.tensor(self._read_knobs(), dtype=DTYPE)
+        while True:  # a readback of a refused severity reads NaN: not there yet
+            rb = torch.tensor(self._read_knobs(refuse=False), dtype=DTYPE)
             off = ((rb - x).abs() > self.tolerance).nonzero().flatten().tolist()
             if not off:
                 return
             if time.monotonic() >= deadline:
                 detail = ", ".join(
                     f"{self.knob_names[i]}: setpoint {target[i]:.9g}, readback "
-                    f"{float(rb[i]):.9g} (tolerance {float(self.tolerance[i]):.3g})"
+                    + (f"{float(rb[i]):.9g}" if rb[i] == rb[i] else "of a refused severity")
+                    + f" (tolerance {float(self.tolerance[i]):.3g})"
                     for i in off
                 )
                 raise ReadbackError(

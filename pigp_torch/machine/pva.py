@@ -80,9 +80,10 @@ class _P4pAdapter:
                 )
         return missing
 
-    def read_many(self, names: list[str], timeout: float) -> list[float]:
-        """Read the scalar ``value`` of each PV as a float (NaN passes through)."""
-        results = self._get(names, timeout)
+    def read_many(self, names: list[str], timeout: float, results=None) -> list[float]:
+        """Read the scalar ``value`` of each PV as a float (NaN passes through); ``results``:
+        what a get of ``names`` returned already."""
+        results = self._get(names, timeout) if results is None else results
         bad = [(n, r) for n, r in zip(names, results, strict=True) if isinstance(r, Exception)]
         if bad:
             detail = "; ".join(f"{n}: {type(r).__name__}: {r}" for n, r in bad)
@@ -95,13 +96,19 @@ class _P4pAdapter:
         except (TypeError, ValueError) as err:
             raise MachineError(f"non-numeric value read from {names}: {err}") from err
 
-    def read_timed(self, name: str, timeout: float) -> tuple[float, float]:
-        """``(value, timeStamp in UNIX seconds)`` of one scalar PV."""
+    def read_alarmed(self, names: list[str], timeout: float) -> list[tuple[float, int]]:
+        """``(value, alarm.severity)`` of each scalar PV (0 ``NO_ALARM`` .. 3 ``INVALID``)."""
+        results = self._get(names, timeout)
+        values = self.read_many(names, timeout, results)
+        return [(v, _severity(r)) for v, r in zip(values, results, strict=True)]
+
+    def read_timed(self, name: str, timeout: float) -> tuple[float, float, int]:
+        """``(value, timeStamp in UNIX seconds, alarm.severity)`` of one scalar PV."""
         (result,) = self._get([name], timeout)
         if isinstance(result, Exception):
             raise MachineError(f"could not read {name} within {timeout:.3g} s: {result}")
         try:
-            return float(result), float(result.timestamp)
+            return float(result), float(result.timestamp), _severity(result)
         except (TypeError, ValueError, AttributeError) as err:
             raise MachineError(f"non-numeric value read from {name}: {err}") from err
 
@@ -153,6 +160,12 @@ class _P4pAdapter:
         if self._owns_context and self.context is not None:
             self.context.close()
         self.context = None
+
+
+def _severity(result) -> int:
+    """The ``alarm.severity`` of a p4p scalar (0 where the PV carries no alarm)."""
+    severity = getattr(result, "severity", None)
+    return 0 if severity is None else int(severity)
 
 
 class PvaMachine(EpicsMachine):

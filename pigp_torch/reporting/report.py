@@ -217,6 +217,12 @@ def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
     out = []
     for s in records.starts[1:]:
         out.append(f"resumed at evaluation {int(s.get('first_step', 0)) + 1}")
+    for s in records.starts:  # a noise measured at a start (the run file stated none)
+        noise = s.get("noise")
+        if isinstance(noise, dict) and noise.get("source") == "measured":
+            unit = logged_units(records.header)[0]
+            out.append(f"reading noise {noise['sigma']:.4g} {unit} measured at the start from "
+                       f"{noise.get('n')} readings at the initial setting")  # fmt: skip
     for r in records.discarded:
         out.append(f"reading discarded at evaluation {int(r['step']) + 1}: {r.get('reason', '')}")
     for r in records.notices:

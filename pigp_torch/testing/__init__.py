@@ -34,6 +34,11 @@ READBACK_OFFSET_SUFFIX = "Sim:ReadbackOffset"
 NARROW_KNOB_SUFFIX = "Sim:NarrowKnob"
 NARROW_LIMIT_SUFFIX = "Sim:NarrowLimit"
 STALL_PUTS_SUFFIX = "Sim:StallPuts"
+#: Alarm-severity fault injection: the severity served, on how many loss-rate reads, on which
+#: knob's readback.
+ALARM_SEVERITY_SUFFIX = "Sim:AlarmSeverity"
+ALARM_READINGS_SUFFIX = "Sim:AlarmReadings"
+ALARM_KNOB_SUFFIX = "Sim:AlarmKnob"
 #: Display limits (LOPR/HOPR) of the simulated loss-rate PV, mA/min.
 LOSS_RATE_LIMITS = (0.0, 100.0)
 #: Loopback: the simulated IOC never listens on an outside interface.
@@ -118,6 +123,9 @@ def free_ports(n: int = 1, attempts: int = 50) -> list[int]:
 
 
 __all__ = [
+    "ALARM_KNOB_SUFFIX",
+    "ALARM_READINGS_SUFFIX",
+    "ALARM_SEVERITY_SUFFIX",
     "DEFAULT_PREFIX",
     "FROZEN_SUFFIX",
     "GLITCH_READINGS_SUFFIX",

@@ -13,6 +13,9 @@ from caproto.server import pvproperty
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
 from pigp_torch.testing import (
+    ALARM_KNOB_SUFFIX,
+    ALARM_READINGS_SUFFIX,
+    ALARM_SEVERITY_SUFFIX,
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     GLITCH_READINGS_SUFFIX,
@@ -31,6 +34,10 @@ from pigp_torch.testing import (
     STUCK_KNOB_SUFFIX,
 )
 from pigp_torch.testing.ioc_pvs import SimRingIOC
+
+
+async def _put_alarm_knob(group, instance, value):
+    await group._on_alarm_knob(int(value))
 
 
 def sim_ioc_class(
@@ -100,6 +107,7 @@ def sim_ioc_class(
             read_only=True,
             precision=6,
             units=str(units),
+            alarm_group=f"readback_{i}",  # its own alarm (caproto shares one per group)
             doc=f"readback of {name} ({units})",
         )
 
@@ -112,6 +120,7 @@ def sim_ioc_class(
         units="mA/min",
         lower_disp_limit=LOSS_RATE_LIMITS[0],
         upper_disp_limit=LOSS_RATE_LIMITS[1],
+        alarm_group="loss_rate",
         doc="simulated loss rate at the readbacks plus Gaussian noise (mA/min)",
     )
 
@@ -196,4 +205,28 @@ def sim_ioc_class(
 
         prop.putter(put_hook)
         attrs[attr] = prop
+    _add_alarm_switches(attrs, prefix, len(names))
     return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
+
+
+def _add_alarm_switches(attrs: dict, prefix: str, d: int) -> None:
+    """The severity hooks (module table of :mod:`~pigp_torch.testing.ioc_pvs`): the severity
+    served, on how many loss-rate reads (-1: every one), on which knob's readback."""
+    alarms = (
+        ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 0, 3,
+         "fault injection: the alarm severity served (0 NO_ALARM .. 3 INVALID)"),
+        ("alarm_readings", ALARM_READINGS_SUFFIX, 0, -1, 1_000_000,
+         "fault injection: the next N reads of the loss rate carry AlarmSeverity; -1 every one"),
+        ("alarm_knob", ALARM_KNOB_SUFFIX, 0, 0, d,
+         "fault injection: k >= 1 serves knob k's readback with AlarmSeverity; 0 none"),
+    )  # fmt: skip
+    for attr, suffix, value, lower, upper, doc in alarms:
+        attrs[attr] = pvproperty(
+            value=value,
+            name=f"{prefix}{suffix}",
+            dtype=ChannelType.LONG,
+            lower_ctrl_limit=lower,
+            upper_ctrl_limit=upper,
+            doc=doc,
+        )
+    attrs["alarm_knob"].putter(_put_alarm_knob)

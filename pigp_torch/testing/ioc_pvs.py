@@ -43,6 +43,13 @@ PV                        access      meaning
 ``P Sim:StallPuts``       read/write  fault injection: for the next ``t`` seconds every
                                       setpoint put is held unanswered until the stall ends,
                                       then refused (nothing applied): an IOC restarting
+``P Sim:AlarmSeverity``   read/write  fault injection: the alarm severity the two switches
+                                      below serve (0 NO_ALARM .. 3 INVALID; default 3)
+``P Sim:AlarmReadings``   read/write  fault injection: the next N client reads of the loss
+                                      rate carry that severity (decremented on each read, a
+                                      fresh timestamp); -1: every read and refresh until reset
+``P Sim:AlarmKnob``       read/write  fault injection: ``k`` >= 1 serves the readback of knob
+                                      ``k`` with that severity (always, until reset to 0)
 ========================  ==========  ========================================================
 
 **Put log.** With ``put_log`` (``pigp serve-sim --put-log FILE``) every put the IOC accepts on
@@ -83,6 +90,7 @@ import time
 from pathlib import Path
 
 import torch
+from caproto import AlarmSeverity, AlarmStatus
 from caproto.server import PVGroup
 
 from pigp_torch._utils import DTYPE
@@ -196,7 +204,22 @@ class SimRingIOC(PVGroup):
         lo, hi = (float(b) for b in self.machine.bounds[:, i])
         clipped = min(max(value, lo), hi)
         self._x_readback[i] = clipped
-        await self.readbacks[i].write(clipped)
+        alarm = self._alarm(int(self.alarm_knob.value) == i + 1)
+        await self.readbacks[i].write(clipped, **alarm)
+
+    def _alarm(self, on: bool) -> dict:
+        """The alarm keywords of a write: ``Sim:AlarmSeverity`` (status READ) when ``on``, else
+        none (NO_ALARM); ``verify_value`` off, as caproto's limit check would otherwise put
+        the alarm of the record's own (absent) limits back over the one given."""
+        severity = int(self.alarm_severity.value) if on else 0
+        status = AlarmStatus.READ if severity else AlarmStatus.NO_ALARM
+        return {"status": status, "severity": AlarmSeverity(severity), "verify_value": False}
+
+    async def _on_alarm_knob(self, k: int) -> None:
+        """A new ``Sim:AlarmKnob``: every readback written again with its alarm (knob ``k``'s
+        with ``Sim:AlarmSeverity``, the others with none)."""
+        for i, rb in enumerate(self.readbacks):
+            await rb.write(float(rb.value), **self._alarm(k == i + 1))
 
     def _refresh(self) -> float:
         """One noisy reading of the simulated loss rate at the current readbacks."""
@@ -213,7 +236,8 @@ class SimRingIOC(PVGroup):
             t0 = time.monotonic()
             if not int(self.frozen.value):
                 value = self._refresh()
-                await self.loss_rate.write(value, timestamp=self._refresh_stamp)
+                alarm = self._alarm(int(self.alarm_readings.value) < 0)
+                await self.loss_rate.write(value, timestamp=self._refresh_stamp, **alarm)
                 self._served_nan = self._served_glitch = False
             await sleep(max(0.0, self.update_period - (time.monotonic() - t0)))
 
@@ -233,19 +257,31 @@ class SimRingIOC(PVGroup):
             await self.reboot_on_read.write(n_reboot - 1)
             if n_reboot == 1:
                 await self._reboot()
+        value = None
         n = int(self.nan_readings.value)
+        m = int(self.glitch_readings.value)
         if n > 0:
             await self.nan_readings.write(n - 1)
             self._served_nan = True
-            return float("nan")
-        n = int(self.glitch_readings.value)
-        if n > 0:  # served with the time of this read: it looks like a fresh reading
-            await self.glitch_readings.write(n - 1)
+            value = float("nan")
+        elif m > 0:  # served with the time of this read: it looks like a fresh reading
+            await self.glitch_readings.write(m - 1)
             self._served_glitch = True
-            return float(self.glitch_value.value)
+            value = float(self.glitch_value.value)
+        k = int(self.alarm_readings.value)
+        if k > 0:  # this read carries the alarm, with the time of this read
+            await self.alarm_readings.write(k - 1)
+            self._served_glitch = True  # the next read serves the last refresh again
+            served = self._last_reading if value is None else value
+            await self.loss_rate.write(served, timestamp=time.time(), **self._alarm(True))
+            return None
+        if value is not None:
+            return value
         if self._served_nan or self._served_glitch:  # the last refresh, with its own timestamp
             self._served_nan = self._served_glitch = False
-            await self.loss_rate.write(self._last_reading, timestamp=self._refresh_stamp)
+            await self.loss_rate.write(
+                self._last_reading, timestamp=self._refresh_stamp, **self._alarm(k < 0)
+            )
         return None
 
     async def _on_offset(self, offset: float) -> None:

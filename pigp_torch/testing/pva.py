@@ -16,12 +16,19 @@ PV                        access      meaning
 ``P Sim:Frozen``          read/write  fault injection (tests): 1 stops the refreshes
 ``P Sim:Reboot``          read/write  fault injection (tests): a put of 1 "reboots the IOC":
                                       every setpoint and readback back at its power-on value
+``P Sim:AlarmSeverity``   read/write  fault injection: the ``alarm.severity`` the two switches
+                                      below post (0 NO_ALARM .. 3 INVALID; default 3)
+``P Sim:AlarmPosts``      read/write  fault injection: the next N loss-rate refreshes are
+                                      posted with that severity (-1: every one until reset);
+                                      the values so posted are kept in ``alarm_values``
+``P Sim:AlarmKnob``       read/write  fault injection: ``k`` >= 1 posts the readback of knob
+                                      ``k`` with that severity (until reset to 0)
 ========================  ==========  ========================================================
 
 (pvAccess serves gets from the posted value, so the per-read switches of the CA IOC,
-``NanReadings`` and ``RebootOnRead``, have no twin here; a test triggers ``Sim:Reboot`` at the
-moment it needs.) The server binds to 127.0.0.1 only and sends its beacons there. Needs the
-optional extra ``pva`` (``p4p``).
+``NanReadings`` and ``RebootOnRead``, have no twin here and ``AlarmReadings`` is
+``AlarmPosts``; a test triggers ``Sim:Reboot`` at the moment it needs.) The server binds to
+127.0.0.1 only and sends its beacons there. Needs the optional extra ``pva`` (``p4p``).
 """
 
 from __future__ import annotations
@@ -37,6 +44,8 @@ import torch
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
 from pigp_torch.testing import (
+    ALARM_KNOB_SUFFIX,
+    ALARM_SEVERITY_SUFFIX,
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     LOOPBACK,
@@ -47,6 +56,7 @@ from pigp_torch.testing import (
 )
 
 REBOOT_SUFFIX = "Sim:Reboot"
+ALARM_POSTS_SUFFIX = "Sim:AlarmPosts"
 
 
 def free_udp_tcp_ports(n: int = 2, attempts: int = 50) -> list[int]:
@@ -149,13 +159,22 @@ class SimRingPVA:
         self.readback_delay = shared(float(readback_delay), (0.0, 3600.0), "s")
         self.frozen = shared(0.0, (0.0, 1.0))
         self.reboot = shared(0.0, (0.0, 1.0))
-        for pv in (self.readback_delay, self.frozen):
+        self.alarm_severity = shared(3.0, (0.0, 3.0))
+        self.alarm_posts = shared(0.0, (-1.0, 1e6))
+        self.alarm_knob = shared(0.0, (0.0, float(d)))
+        #: Loss-rate values posted with an alarm (what a client must never take as a reading).
+        self.alarm_values: list[float] = []
+        for pv in (self.readback_delay, self.frozen, self.alarm_severity, self.alarm_posts):
             pv.put(self._switch_handler)
+        self.alarm_knob.put(self._alarm_knob_handler)
         self.reboot.put(self._reboot_handler)
         self.pvs[f"{prefix}{LOSS_RATE_SUFFIX}"] = self.loss_rate
         self.pvs[f"{prefix}{READBACK_DELAY_SUFFIX}"] = self.readback_delay
         self.pvs[f"{prefix}{FROZEN_SUFFIX}"] = self.frozen
         self.pvs[f"{prefix}{REBOOT_SUFFIX}"] = self.reboot
+        self.pvs[f"{prefix}{ALARM_SEVERITY_SUFFIX}"] = self.alarm_severity
+        self.pvs[f"{prefix}{ALARM_POSTS_SUFFIX}"] = self.alarm_posts
+        self.pvs[f"{prefix}{ALARM_KNOB_SUFFIX}"] = self.alarm_knob
 
     # ------------------------------------------------------------------ behaviour
     def _reading(self) -> float:
@@ -169,7 +188,20 @@ class SimRingPVA:
             if count is not None and count != self._put_count[i]:
                 return  # a newer put won
             self._x_readback[i] = float(value)
-        self.readbacks[i].post(float(value), timestamp=time.time())
+        alarm = int(float(self.alarm_knob.current())) == i + 1
+        self.readbacks[i].post(float(value), timestamp=time.time(), severity=self._severity(alarm))
+
+    def _severity(self, on: bool) -> int:
+        """``Sim:AlarmSeverity`` when ``on``, else 0 (NO_ALARM)."""
+        return int(float(self.alarm_severity.current())) if on else 0
+
+    def _alarm_knob_handler(self, pv, op) -> None:
+        pv.post(float(op.value()), timestamp=time.time())
+        op.done()
+        for i, rb in enumerate(self.readbacks):
+            with self._lock:
+                value = self._x_readback[i]
+            rb.post(value, timestamp=time.time(), severity=self._severity(op.value() == i + 1))
 
     def _setpoint_handler(self, i: int, limits: tuple[float, float]):
         def handler(pv, op):
@@ -211,7 +243,13 @@ class SimRingPVA:
         while not self._stop.is_set():
             t0 = time.monotonic()
             if not float(self.frozen.current()):
-                self.loss_rate.post(self._reading(), timestamp=time.time())
+                value, posts = self._reading(), int(float(self.alarm_posts.current()))
+                if posts > 0:
+                    self.alarm_posts.post(float(posts - 1), timestamp=time.time())
+                severity = self._severity(posts != 0)
+                if severity > 0:
+                    self.alarm_values.append(value)
+                self.loss_rate.post(value, timestamp=time.time(), severity=severity)
             self._stop.wait(max(0.0, self.update_period - (time.monotonic() - t0)))
 
     # ------------------------------------------------------------------ serving

@@ -62,6 +62,9 @@ def test_pv_names_limits_and_initial_values():
         "T:Sim:ReadbackOffset",
         "T:Sim:NarrowLimit",
         "T:Sim:StallPuts",
+        "T:Sim:AlarmSeverity",
+        "T:Sim:AlarmReadings",
+        "T:Sim:AlarmKnob",
     ]
     assert ioc.loss_rate_pv == "T:BeamLossRate"
     assert [sp.value for sp in ioc.setpoints] == [0.5, -1.0]

@@ -190,7 +190,7 @@ def test_a_restore_that_fails_exits_3_with_the_last_setpoint(
 
     def read(self):
         calls["n"] += 1
-        if calls["n"] == 3:
+        if calls["n"] == 5 + 3:  # after the noise measurement's 5 readings and evaluation 1
             probe.write(ioc.readback_delay_pv, 5.0)
         return real(self)
 

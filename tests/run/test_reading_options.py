@@ -8,7 +8,7 @@ import yaml
 
 from pigp_torch.loop.config import ConfigError
 from pigp_torch.loop.run import RunSetup, load_config
-from tests.run.test_run_files import KNOBS, sim, write_prior
+from tests.run.test_run_files import KNOBS, epics, sim, write_prior
 
 
 def options_of(tmp_path, data):
@@ -44,3 +44,36 @@ def test_bad_reading_options_are_refused(tmp_path, over, message):
     path.write_text(yaml.safe_dump(sim(**over)))
     with pytest.raises(ConfigError, match=message):
         load_config(path)
+
+
+def test_an_epics_run_without_stated_noise_measures_it(tmp_path):
+    """kind: epics stating no noise measures it at the start (noise_reads, default 5, 3 to 50;
+    the plan says so, with its unit); with objective_noise, or on the simulator (whose noise is
+    known), nothing is measured; machine.refuse_severity takes MAJOR or INVALID only."""
+    from pigp_torch.commands.optimize_output import noise_in_force
+
+    setup = RunSetup(config=validate(tmp_path, epics()), optimizer=None, machine=None)
+    assert setup.options().noise is None and setup.options().noise_reads == 5
+    assert noise_in_force(setup, None) == (
+        "measured at the start: the standard deviation of 5 readings at the initial setting "
+        "(at least 1% of their mean), in mA/min"
+    )
+    assert options_of(tmp_path, epics(noise_reads=12)).noise_reads == 12
+    stated = RunSetup(config=validate(tmp_path, epics(objective_noise=0.03)), optimizer=None,
+                      machine=None)  # fmt: skip
+    assert stated.options().noise_reads == 0
+    assert noise_in_force(stated, None) == "0.03 mA/min (stated: objective_noise)"
+    assert options_of(tmp_path, sim()).noise_reads == 0
+    for bad in (2, 51):
+        with pytest.raises(ConfigError, match="noise_reads"):
+            validate(tmp_path, epics(noise_reads=bad))
+    major = {"kind": "epics", "settle_time": 0.0, "refuse_severity": "MAJOR"}
+    assert validate(tmp_path, epics(machine=major)).machine.refuse_severity == "MAJOR"
+    with pytest.raises(ConfigError, match="refuse_severity"):
+        validate(tmp_path, epics(machine={**major, "refuse_severity": "MINOR"}))
+
+
+def validate(tmp_path, data):
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_config(path)

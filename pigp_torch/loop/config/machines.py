@@ -137,7 +137,9 @@ class EpicsMachineConfig(Section):
     configured from ``EPICS_PVA_*`` in the environment). ``observable_pvs`` (``{name: PV}``,
     default none): what each reading also measures (e.g. a screen's beam numbers), read after
     the objective, logged with every evaluation and told to the methods that fit them;
-    ``observable_units`` (``{name: unit}``) their units.
+    ``observable_units`` (``{name: unit}``) their units. ``refuse_severity`` (``INVALID``,
+    default, or ``MAJOR``): a reading of the objective, a readback or an observable with this
+    alarm severity or worse is not valid: it is read again and never becomes an evaluation.
     """
 
     kind: Literal["epics"]
@@ -155,6 +157,7 @@ class EpicsMachineConfig(Section):
     stale_timeout: Number = Field(10.0, gt=0.0)
     observable_pvs: dict[str, str] | None = None
     observable_units: dict[str, str] | None = None
+    refuse_severity: Literal["MAJOR", "INVALID"] = "INVALID"
 
     @model_validator(mode="after")
     def _one_tolerance(self) -> EpicsMachineConfig:

@@ -24,6 +24,8 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
     restore: initial              # or best (set the best observed point at the end)
     restore_timeout: 30           # s the restore keeps trying (a stall, an IOC restart)
     read_retries: 2
+    # objective_noise: 0.04       # one reading's noise; epics without it: measured at the
+    # noise_reads: 5              #   start from this many readings at the initial setting
     objective_floor: null         # abort when a reading falls below this
     objective_unit: mA/min        # units printed and drawn with the numbers (these defaults)
     knob_unit: A
@@ -134,8 +136,11 @@ class RunConfig(_Section):
             discarded and read again (``None``: the objective PV's DRVL/DRVH or LOPR/HOPR).
         objective_noise: noise (standard deviation) of one reading, objective units; a reading
             far from the run's own (and the first) is then re-read and kept only if it
-            repeats (``None``: the simulated machine's noise, else the prior's; with neither
-            that rule is off).
+            repeats (``None``: the simulated machine's noise, else the prior's; on
+            ``kind: epics`` with neither, measured at the start: ``noise_reads``).
+        noise_reads: readings taken at the initial setting before the first evaluation, on
+            ``kind: epics`` when no noise is stated, whose standard deviation (at least 1 % of
+            their mean) is then the noise (default 5, 3 to 50; a resume reuses the logged one).
         readback_tolerance: allowed readback error after the final set, a fraction of the range.
         restore_attempts: attempts at restoring the knobs at the end (default 3).
         restore_interval: seconds between those attempts (default 1).
@@ -163,6 +168,7 @@ class RunConfig(_Section):
     objective_floor: Number | None = None
     objective_range: tuple[Number, Number] | None = None
     objective_noise: Number | None = Field(None, gt=0.0)
+    noise_reads: Integer = Field(5, ge=3, le=50)
     readback_tolerance: Number = Field(1e-3, ge=0.0)
     restore_attempts: Integer = Field(3, ge=1, le=100)
     restore_interval: Number = Field(1.0, ge=0.0)

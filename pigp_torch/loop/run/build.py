@@ -172,6 +172,7 @@ def build_machine(config: RunConfig):
         read_retries=0,  # the loop retries (config.read_retries), for every machine alike
         observable_pvs=m.observable_pvs,
         observable_units=m.observable_units,
+        refuse_severity=m.refuse_severity,
     )
 
 
@@ -275,7 +276,12 @@ class RunSetup:
             restore_timeout=c.restore_timeout,
             noise=self.stated_noise(),
             objective_range=c.objective_range,
+            noise_reads=c.noise_reads if self.measures_noise() else 0,
         )
+
+    def measures_noise(self) -> bool:
+        """Whether the run measures its noise at the start: ``kind: epics`` stating none."""
+        return isinstance(self.config.machine, EpicsMachineConfig) and self.stated_noise() is None
 
     def stated_noise(self) -> float | None:
         """The noise of one reading the run states: ``objective_noise``, else the simulated
