@@ -49,6 +49,24 @@ def test_state_of_a_run_log(tmp_path):
     ]
 
 
+def test_a_beam_logged_in_metres_is_shown_in_micrometres_with_per_knob_units(tmp_path):
+    """An ARES-EA log keeps m; the page shows µm, and each knob's own unit."""
+    header = {
+        "knob_names": ["Q1", "H1"],
+        "knob_units": ["1/m^2", "rad"],
+        "method": "ares-physics",
+        "maximize": False,
+        "config": {"objective_unit": "m", "knob_unit": "1/m^2 or rad"},
+    }
+    with RunLog.create(tmp_path / "ares.jsonl", header) as log:
+        log.log_start([0.0, 0.0], budget=5, first_step=0)
+        log.log_evaluation(0, [1.0, 1e-3], 8.25e-7)
+        log.log_evaluation(1, [2.0, 2e-3], 4.5e-7)
+        s = run_state(log.path)
+    assert s["objective_unit"] == "µm" and s["knob_units"] == ["1/m^2", "rad"]
+    assert s["y"] == pytest.approx([0.825, 0.45], rel=1e-12) and s["best_y"] == pytest.approx(0.45)
+
+
 def test_final_page_embeds_the_state_and_needs_no_server(tmp_path):
     """The final page: the state as JSON in the page (a '</script>' in a knob name cannot end the
     script), no polling, written next to the log."""

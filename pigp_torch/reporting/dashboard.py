@@ -31,6 +31,7 @@ import warnings
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from pigp_torch._utils.units import display_unit
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config.schema import logged_units
 from pigp_torch.reporting.dashboard_page import PAGE, page_html  # noqa: F401  (re-exported)
@@ -60,14 +61,16 @@ def run_state(path: str | Path) -> dict:
     r"""What the page shows, from the run log at ``path``.
 
     Returns:
-        ``{"method", "budget", "n", "status", "ended", "steps", "y", "best", "last_y",
-        "best_y", "move", "move_knob", "knob_names", "x", "bounds", "objective_unit",
-        "knob_unit", "notices"}``: ``steps`` counted from 1, ``best`` the best reading so far at
-        each step (by the header's ``maximize``, default true), ``move`` the largest knob change
-        of the last evaluation (``None`` before the second), ``x`` the knob settings of every
-        evaluation (``n x d``, knob units), ``bounds`` ``[lower, upper]`` lists or ``None``,
-        ``status`` the last end record's status or ``"running"`` (``"waiting"`` before the log
-        exists), ``ended`` whether the log has an end record, ``notices`` the run's events.
+        ``{"method", "budget", "n", "status", "ended", "steps", "y", "best", "last_y", "best_y",
+        "move", "move_knob", "knob_names", "x", "bounds", "objective_unit", "knob_unit",
+        "knob_units", "notices"}``: readings in the unit a person reads (a beam logged in m shown in
+        µm, ``objective_unit`` the unit shown), ``knob_units`` one unit per knob where the log's
+        header has them, ``steps`` counted from 1, ``best`` the best reading so far at each step (by
+        the header's ``maximize``, default true), ``move`` the largest knob change of the last
+        evaluation (``None`` before the second), ``x`` the knob settings of every evaluation (``n x
+        d``, knob units), ``bounds`` ``[lower, upper]`` lists or ``None``, ``status`` the last end
+        record's status or ``"running"`` (``"waiting"`` before the log exists), ``ended`` whether
+        the log has an end record, ``notices`` the run's events.
     """
     path = Path(path)
     if not path.exists():
@@ -78,7 +81,9 @@ def run_state(path: str | Path) -> dict:
         records = read_log(path)
     h = records.header
     maximize = bool(h.get("maximize", True))
-    ys = [float(r["y"]) for r in records.evaluations]
+    objective_unit, knob_unit = logged_units(h)
+    scale, objective_unit = display_unit(objective_unit)  # a beam logged in m is shown in µm
+    ys = [scale * float(r["y"]) for r in records.evaluations]
     best, b = [], None
     for y in ys:
         b = y if b is None or (y > b if maximize else y < b) else b
@@ -91,7 +96,6 @@ def run_state(path: str | Path) -> dict:
         move, knob = deltas[i], (records.knob_names[i] if records.knob_names else f"x{i}")
     budget = records.starts[-1].get("budget") if records.starts else h.get("budget")
     end = records.last_end
-    objective_unit, knob_unit = logged_units(h)
     return {
         "method": h.get("method"),
         "budget": budget,
@@ -111,6 +115,7 @@ def run_state(path: str | Path) -> dict:
         "maximize": maximize,
         "objective_unit": objective_unit,
         "knob_unit": knob_unit,
+        "knob_units": h.get("knob_units"),
         "notices": _notices(records),
     }
 

@@ -110,10 +110,13 @@ function draw(s) {
   chart("knobs", series, 1, x1, lo, hi, "evaluation", "knob setting (" + ku + ")", hl,
         s.bounds ? "- - - bounds" : "");
   const last = xs.length ? xs[xs.length - 1] : [];
-  let rows = '<tr><th></th><th>knob</th><th>last setting (' + esc(ku) + ')</th></tr>';
+  const per = (s.knob_units && s.knob_units.length === d) ? s.knob_units : null;
+  let rows = '<tr><th></th><th>knob</th><th>last setting' + (per ? '' : ' (' + esc(ku) + ')') +
+    '</th>' + (per ? '<th>unit</th>' : '') + '</tr>';
   names.forEach((n, i) => {
     rows += '<tr><td style="color:' + COLORS[i % 20] + '">&#9632;</td><td>' + esc(n) +
-      '</td><td class="num">' + fmt(last[i]) + '</td></tr>';
+      '</td><td class="num">' + fmt(last[i]) + '</td>' +
+      (per ? '<td>' + esc(per[i]) + '</td>' : '') + '</tr>';
   });
   document.getElementById("knobtable").innerHTML = rows;
 }
