@@ -111,10 +111,10 @@ class FitTerms:
             - 0.5 * self._log_det_A
         )
 
-    def _laplace(self, X: Tensor) -> None:
-        J = self.jacobian(X)
-        P, log_det = self.fit_covariance(X)
-        self._log_det_noise = None if P is None else log_det  # None: n log noise^2
+    def prior_precision(self) -> Tensor:
+        r"""``n_params x n_params`` prior precision :math:`\Lambda_0` of :math:`\theta` (the
+        centre block :math:`C_\mu^{-1}`, then :math:`s_c^{-2}`, :math:`s_\beta^{-2}`[,
+        :math:`s_f^{-2}`][, :math:`s_B^{-2}` each])."""
         tail = [self.log_c_std**-2, self.log_beta_std**-2]
         if self.f_inf_std > 0:
             tail.append(self.f_inf_std**-2)
@@ -122,9 +122,14 @@ class FitTerms:
             tail += [self.shape_std**-2] * self.dim
         tail = torch.diag(torch.tensor(tail, dtype=DTYPE))
         if self.center_cov is None:  # the box prior: diagonal, as before the ensemble option
-            prior_prec = torch.diag(torch.cat([self.tau**-2, tail.diagonal()]))
-        else:
-            prior_prec = torch.block_diag(self.center_precision, tail)
+            return torch.diag(torch.cat([self.tau**-2, tail.diagonal()]))
+        return torch.block_diag(self.center_precision, tail)
+
+    def _laplace(self, X: Tensor) -> None:
+        J = self.jacobian(X)
+        P, log_det = self.fit_covariance(X)
+        self._log_det_noise = None if P is None else log_det  # None: n log noise^2
+        prior_prec = self.prior_precision()
         A = J.T @ J / self.noise**2 if P is None else J.T @ P @ J
         A = A + prior_prec
         L = torch.linalg.cholesky(A)

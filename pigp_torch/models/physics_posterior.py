@@ -17,6 +17,7 @@ import math
 import numpy as np
 import torch
 
+from pigp_torch.models._centre_design import expected_information
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.posterior import PosteriorBase, Prediction
 from pigp_torch.prior import PhysicsPrior
@@ -109,6 +110,24 @@ class PhysicsFormPosterior(PosteriorBase):
         (:meth:`~pigp_torch.models.InverseSqrtPeakModel.centre_information_with_grad`): ``N``
         values, with ``order=1`` also their ``N x d`` gradients."""
         info, grad = self.model.centre_information_numpy(X)
+        return info if order == 0 else (info, grad)
+
+    def correlated_centre_information(self, X: np.ndarray, order: int = 0):
+        r"""Reduction of :math:`\mathrm{tr}(B\,C_\mu)` by one more reading at each of ``X: N x
+        d`` with the readings' errors correlated by the residual GP (the exact Sherman-Morrison
+        update, :func:`~pigp_torch.models._centre_design.expected_information` with ``rank =
+        0``): ``N`` values, with ``order=1`` also their ``N x d`` gradients."""
+        info, grad = expected_information(self.model, X)
+        return info if order == 0 else (info, grad)
+
+    def expected_centre_information(
+        self, X: np.ndarray, order: int = 0, rank: int = 3, kappa: float = 1.0
+    ):
+        r"""The correlated reduction of :math:`\mathrm{tr}(B\,C_\mu)` averaged over the Laplace
+        posterior of :math:`\theta` by ``2 rank + 1`` sigma points along the centre's costliest
+        directions (:func:`~pigp_torch.models._centre_design.expected_information`): ``N``
+        values, with ``order=1`` also their ``N x d`` gradients."""
+        info, grad = expected_information(self.model, X, rank, kappa)
         return info if order == 0 else (info, grad)
 
     def extra_starts(self, box: torch.Tensor) -> list[torch.Tensor]:

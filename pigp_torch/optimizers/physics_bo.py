@@ -44,6 +44,8 @@ from pigp_torch.optimizers.bo import (
     BayesianOptimizer,
     BOParts,
     CentreInformation,
+    CorrelatedCentreInformation,
+    ExpectedCentreInformation,
     MultiStartLBFGSB,
     Schedule,
     TrustRegion,
@@ -78,8 +80,12 @@ class PhysicsModelBO(BayesianOptimizer):
             third ask; 0 turns it off).
         schedule: the acquisition of every ask as a :class:`~pigp_torch.optimizers.bo.Schedule`
             of the letters ``u`` (the UCB with ``beta``), ``m`` (the posterior mean, the UCB
-            with :math:`\beta = 0`: a visit of the fitted optimum) and ``i`` (the centre
-            information); overrides ``info_every`` (``None``, default: ``info_every``'s
+            with :math:`\beta = 0`: a visit of the fitted optimum), ``i`` (the centre
+            information), ``c`` (the same with the readings' errors correlated by the
+            residual GP, :class:`~pigp_torch.optimizers.bo.CorrelatedCentreInformation`) and
+            ``e`` (that, averaged over the Laplace posterior of the form's parameters,
+            :class:`~pigp_torch.optimizers.bo.ExpectedCentreInformation`); overrides
+            ``info_every`` (``None``, default: ``info_every``'s
             alternation of ``u`` and ``i``).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
@@ -176,6 +182,7 @@ class PhysicsModelBO(BayesianOptimizer):
             acquisition = Alternating(ucb, CentreInformation(), info_every)
         else:
             letters = {"u": ucb, "m": UCB(0.0), "i": CentreInformation()}
+            letters.update(c=CorrelatedCentreInformation(), e=ExpectedCentreInformation())
             acquisition = Schedule(letters, schedule)
         self.schedule = schedule
         super().__init__(bounds, BOParts(posterior, acquisition, search, region), seed=seed)

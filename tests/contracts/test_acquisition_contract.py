@@ -18,7 +18,17 @@ from botorch.acquisition import (
     UpperConfidenceBound,
 )
 
-from pigp_torch.optimizers.bo import EI, UCB, Alternating, CentreInformation, LogEI, Schedule
+from pigp_torch.models._centre_design import expected_information
+from pigp_torch.optimizers.bo import (
+    EI,
+    UCB,
+    Alternating,
+    CentreInformation,
+    CorrelatedCentreInformation,
+    ExpectedCentreInformation,
+    LogEI,
+    Schedule,
+)
 from tests.contracts.parts import DT, HALF, make_prior, posteriors, readings
 
 PRIOR = make_prior()
@@ -118,3 +128,30 @@ def test_written_schedule():
                        ("u/i", "count >= 1"), ("u@0/i", "count >= 1")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             Schedule({"u": u, "i": i}, bad)
+
+
+@pytest.mark.parametrize(
+    "acq, rank",
+    [(CorrelatedCentreInformation(), 0), (ExpectedCentreInformation(2, 0.5), 2)],
+    ids=["correlated", "expected"],
+)
+def test_early_phase_information(acq, rank):
+    """The correlated and the posterior-averaged centre information bound to the physics
+    posterior give the model's values (orders 0 and 1) and a gradient equal to central
+    differences; both give first derivatives only and refuse bad options."""
+    post = POSTERIORS["physics"][0]
+    fun = acq.bind(post, BEST, 3)
+    assert fun.max_order == 1
+    x = _points(0.5).numpy()
+    v, g = fun(x, 1)
+    ref, _ = expected_information(post.model, x, rank, getattr(acq, "kappa", 1.0))
+    np.testing.assert_allclose(v, ref, rtol=1e-12)
+    np.testing.assert_array_equal(fun(x, 0), v)
+    h = 1e-7
+    for k in range(x.shape[1]):
+        e = np.zeros(x.shape[1])
+        e[k] = h
+        np.testing.assert_allclose(g[:, k], (fun(x + e, 0) - fun(x - e, 0)) / (2 * h), rtol=1e-5)
+    for bad in ((-1, 1.0), (2, 0.0), (2, float("nan"))):
+        with pytest.raises(ValueError, match="rank must be >= 0 and kappa > 0"):
+            ExpectedCentreInformation(*bad)

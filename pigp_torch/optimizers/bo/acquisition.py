@@ -20,6 +20,9 @@ derivatives up to the order the search asks for, using only those of :math:`\mu`
   z\nabla^2\sigma)/\sigma - (\nabla\sigma\nabla z^\top + \nabla z\nabla\sigma^\top)/\sigma`;
 * :class:`CentreInformation`: what one more reading tells about the fitted centre of the
   physics form (a posterior with ``centre_information``);
+* :class:`CorrelatedCentreInformation`: the same with the readings' errors correlated by the
+  residual GP (the exact update);
+* :class:`ExpectedCentreInformation`: that, averaged over the posterior of the form's parameters;
 * :class:`Alternating`: one acquisition every ``every``-th ask, another otherwise;
 * :class:`Schedule`: the acquisition of each ask from a written schedule of letters;
 * :class:`BoTorchAcquisition`: a BoTorch ``AcquisitionFunction`` built on the posterior's BoTorch
@@ -186,6 +189,41 @@ class CentreInformation(_Analytic):
 
     def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
         return posterior.centre_information(X, order)
+
+
+class CorrelatedCentreInformation(CentreInformation):
+    r""":class:`CentreInformation` with the readings' errors correlated by the residual GP:
+    the exact update of the Laplace precision by one more reading, :math:`\mathbf u\mathbf
+    u^\top/s^2` with :math:`\mathbf u = \mathbf j - G^\top\Sigma^{-1}\mathbf k` (a
+    posterior with ``correlated_centre_information``); orders 0 and 1. A reading next to told
+    ones is worth less than the independent formula says."""
+
+    name = "correlated_centre_information"
+
+    def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
+        return posterior.correlated_centre_information(X, order)
+
+
+class ExpectedCentreInformation(CentreInformation):
+    r""":class:`CorrelatedCentreInformation` averaged over the posterior of the form's
+    parameters (``2 rank + 1`` sigma points of the Laplace posterior along the centre's
+    costliest directions; a posterior with ``expected_centre_information``), not at the point
+    estimate; orders 0 and 1.
+
+    Args:
+        rank: directions of the sigma points (``>= 0``; 0 is the point estimate; default 3).
+        kappa: weight of the point estimate, :math:`\kappa/(r + \kappa)` (``> 0``; default 1).
+    """
+
+    name = "expected_centre_information"
+
+    def __init__(self, rank: int = 3, kappa: float = 1.0) -> None:
+        if int(rank) < 0 or not (math.isfinite(float(kappa)) and float(kappa) > 0):
+            raise ValueError(f"rank must be >= 0 and kappa > 0, got {rank} and {kappa}")
+        self.rank, self.kappa = int(rank), float(kappa)
+
+    def evaluate(self, posterior, X: np.ndarray, order: int, best_f: float):
+        return posterior.expected_centre_information(X, order, self.rank, self.kappa)
 
 
 class Alternating:
