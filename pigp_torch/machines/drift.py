@@ -52,7 +52,8 @@ class DriftPath:
         step_at: reading :math:`t_J` of the step (default ``None``: no step).
         seed: seed of the walk's increments.
         horizon: readings whose increments are drawn at once (more are drawn on demand, in the
-            same stream, so :math:`\Delta(t)` does not depend on the horizon).
+            same stream, so :math:`\Delta(t)` does not depend on the horizon but for the rounding of
+            the running sums).
 
     Raises:
         ValueError: parts of different sizes, a negative ``walk_sd`` or ``step_at``.
@@ -185,3 +186,55 @@ def interpolate_track(times: np.ndarray, values: np.ndarray, t) -> np.ndarray:
     """Linear interpolation of a grid's ``values`` at readings ``t`` (held constant past the
     grid's ends)."""
     return np.interp(np.asarray(t, dtype=float), times.astype(float), values)
+
+
+def drive(machine, optimizer, readings: int, *, set_back: bool = True):
+    r"""Run an ask/tell ``optimizer`` on ``machine`` for ``readings`` readings: reading 0 at the
+    start setting, reading :math:`t \ge 1` at the optimizer's ``t``-th ask; each reading is told
+    (with the observables when the optimizer fits them, ``uses_observables``). With ``set_back``
+    the knobs then go to the optimizer's best setting (``best()``) and one more reading is taken.
+
+    Returns:
+        ``(X, true)``: ``T x d`` settings of the readings and ``T x m`` true observables
+        (``machine.last_true_observables`` after each reading), ``T = readings (+ 1)``.
+
+    Raises:
+        ValueError: ``readings < 1``.
+    """
+    if int(readings) < 1:
+        raise ValueError(f"readings must be >= 1, got {readings}")
+    X, true = [], []
+    for t in range(int(readings)):
+        if t > 0:
+            machine.set(optimizer.ask())
+        x = machine.get()
+        y = machine.read()
+        if getattr(optimizer, "uses_observables", False):
+            optimizer.tell(x, y, observables=machine.last_observables)
+        else:
+            optimizer.tell(x, y)
+        X.append(x)
+        true.append(machine.last_true_observables.clone())
+    if set_back:
+        machine.set(optimizer.best()[0])
+        machine.read()
+        X.append(machine.get())
+        true.append(machine.last_true_observables.clone())
+    return torch.stack(X), torch.stack(true)
+
+
+def window_statistic(values, window: tuple[int, int], how: str = "median") -> float:
+    r"""The median (or ``how="mean"``) of ``values[t]`` over readings ``window[0] <= t <
+    window[1]`` (readings counted from 0, the start).
+
+    Raises:
+        ValueError: an empty window or an unknown ``how``.
+    """
+    v = np.asarray(values, dtype=float)[int(window[0]) : int(window[1])]
+    if v.size == 0:
+        raise ValueError(f"no readings in window {window} of {len(values)}")
+    if how == "median":
+        return float(np.median(v))
+    if how == "mean":
+        return float(np.mean(v))
+    raise ValueError(f"how must be 'median' or 'mean', got {how!r}")
