@@ -204,16 +204,13 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
     if int(readings) < 1:
         raise ValueError(f"readings must be >= 1, got {readings}")
     X, true = [], []
+    fits = bool(getattr(optimizer, "uses_observables", False))
     for t in range(int(readings)):
         if t > 0:
             machine.set(optimizer.ask())
-        x = machine.get()
+        X.append(machine.get())
         y = machine.read()
-        if getattr(optimizer, "uses_observables", False):
-            optimizer.tell(x, y, observables=machine.last_observables)
-        else:
-            optimizer.tell(x, y)
-        X.append(x)
+        optimizer.tell(X[-1], y, **({"observables": machine.last_observables} if fits else {}))
         true.append(machine.last_true_observables.clone())
     if set_back:
         machine.set(optimizer.best()[0])
@@ -221,6 +218,17 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
         X.append(machine.get())
         true.append(machine.last_true_observables.clone())
     return torch.stack(X), torch.stack(true)
+
+
+def family_components(families: dict[str, frozenset[str]], family: str, what: str):
+    """The components of ``family`` in ``families`` (a kind's families, ``what`` names them).
+
+    Raises:
+        ValueError: an unknown family (one line naming the known ones).
+    """
+    if family not in families:
+        raise ValueError(f"unknown {what} family {family!r}; known: {list(families)}")
+    return families[family]
 
 
 def window_statistic(values, window: tuple[int, int], how: str = "median") -> float:

@@ -49,7 +49,7 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.machines.ares_ea.machine import AresMachine
 from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES, AresSegment, AresTrial
-from pigp_torch.machines.drift import DriftPath, PlayHysteresis
+from pigp_torch.machines.drift import DriftPath, PlayHysteresis, family_components
 
 #: A run (readings): the linear drifts' magnitudes are stated per run.
 DURATION: int = 300
@@ -92,14 +92,8 @@ _I = {n: i for i, n in enumerate(INCOMING_NAMES)}
 
 
 def check_family(family: str) -> frozenset[str]:
-    """The components of ``family``.
-
-    Raises:
-        ValueError: an unknown family (one line naming the known ones).
-    """
-    if family not in ARES_FAMILIES:
-        raise ValueError(f"unknown ARES family {family!r}; known: {list(ARES_FAMILIES)}")
-    return ARES_FAMILIES[family]
+    """The components of ``family`` (ValueError: an unknown one)."""
+    return family_components(ARES_FAMILIES, family, "ARES")
 
 
 @dataclass(frozen=True)

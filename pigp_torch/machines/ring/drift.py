@@ -41,7 +41,7 @@ from torch import Tensor
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.machine.model_machine import ModelMachine
-from pigp_torch.machines.drift import interpolate_track, optimum_track
+from pigp_torch.machines.drift import family_components, interpolate_track, optimum_track
 from pigp_torch.machines.ring.model import ring_machine_model
 
 DURATION: int = 500
@@ -64,14 +64,8 @@ RING_FAMILIES: dict[str, frozenset[str]] = {
 
 
 def check_family(family: str) -> frozenset[str]:
-    """The components of ``family``.
-
-    Raises:
-        ValueError: an unknown family (one line naming the known ones).
-    """
-    if family not in RING_FAMILIES:
-        raise ValueError(f"unknown ring family {family!r}; known: {list(RING_FAMILIES)}")
-    return RING_FAMILIES[family]
+    """The components of ``family`` (ValueError: an unknown one)."""
+    return family_components(RING_FAMILIES, family, "ring")
 
 
 def _gain_of(F: Callable[[Tensor], Tensor], x0: Tensor, f_star: float, f_zero: float):
