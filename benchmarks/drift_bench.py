@@ -16,7 +16,8 @@ SPEAR3 seeds 1-24 are held out and need ``--held-out`` (report runs, never tunin
     nice -n 15 python benchmarks/drift_bench.py ares --family drift --trials 0-2 \\
         --methods ares-physics published-nm [--readings 300] [--noise 0] [--csv steps.csv]
     nice -n 15 python benchmarks/drift_bench.py spear3 --family drift --seeds 101-102 \\
-        --methods pigp-physics nelder-mead [--readings 500] [--center-ensemble 40]
+        --methods pigp-physics nelder-mead [--readings 500] \\
+        [--prior docs/data/prior_spear3_seed0_exact.json | --center-ensemble 40]
 """
 
 from __future__ import annotations
@@ -129,7 +130,12 @@ def _jobs(a) -> tuple[list, object]:
     seeds = _ids(a.seeds, RING_HELD_OUT, a.held_out, "SPEAR3 seeds")
     window = tuple(a.window or (100, 500))
     prior = None
-    if any(METHODS[m].needs_prior for m in a.methods):
+    if a.prior:
+        from pigp_torch.prior import PhysicsPrior
+
+        prior = PhysicsPrior.load(a.prior)
+        print(f"prior: {a.prior}", flush=True)
+    elif any(METHODS[m].needs_prior for m in a.methods):
         from pigp_torch.benchmark.protocol import model_prior
 
         print(f"prior: model ring 0, {a.center_ensemble} ensemble rings", flush=True)
@@ -152,6 +158,9 @@ def main(argv=None) -> int:
                         "(SPEAR3, default 0.04)")  # fmt: skip
     p.add_argument("--window", type=int, nargs=2, default=None, help="readings [lo, hi) scored")
     p.add_argument("--center-ensemble", type=int, default=40)
+    p.add_argument("--prior", default=None,
+                   help="SPEAR3: a saved prior (e.g. docs/data/prior_spear3_seed0_exact.json, "
+                        "model ring 0 + 40 ensemble rings) instead of computing it")  # fmt: skip
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--held-out", action="store_true")
     p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
@@ -163,7 +172,7 @@ def main(argv=None) -> int:
         if a.family not in KINDS["ares-ea" if ares else "spear3"].drift_families():
             raise ValueError(f"unknown family {a.family!r}")
         jobs, fn = _jobs(a)
-    except (KeyError, ValueError) as err:
+    except (KeyError, ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     runs = []
