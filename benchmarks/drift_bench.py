@@ -181,7 +181,8 @@ def main(argv=None) -> int:
         unit = "um" if ares else "of the gain"
         score = r["window_median"] if ares else r["window_mean"]
         who = f"{r['method']} {'trial' if ares else 'seed'} {r['id']}"
-        print(f"{who}: window {score:.3f} {unit}, final {r['final']:.3f} {unit} "
+        best = f", best {r['best']:.3f} {unit}" if ares else ""
+        print(f"{who}: window {score:.3f} {unit}, final {r['final']:.3f} {unit}{best} "
               f"({r['seconds']:.0f} s)", flush=True)  # fmt: skip
         runs.append(r)
     if pool:
