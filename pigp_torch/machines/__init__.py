@@ -9,6 +9,11 @@ name to a method.
   magnets and one screen. ``KINDS["ares-ea"].model(trial=...)`` is its
   :class:`~pigp_torch.prior.MachineModel`.
 
+Drift and reality-gap families (machines whose hidden state changes with the reading count, or
+that have physics their model lacks): ``KINDS[name].drift_families()`` and
+``KINDS[name].drift_machine(family=..., seed=...)`` (docs/drift_families.md); the processes they
+share are in :mod:`pigp_torch.machines.drift`.
+
 A kind is one sub-package here whose ``__init__`` defines ``KIND``; nothing else is edited to add
 one (docs/extending.md). Every kind passes the contract of
 :mod:`pigp_torch.machines.contract`.

@@ -95,6 +95,17 @@ class MachineKind:
         """Run the kind's benchmark task (a tidy table)."""
         raise NotImplementedError(f"machine kind {self.name!r} has no benchmark task")
 
+    def drift_families(self) -> dict[str, frozenset[str]]:
+        """The kind's drift and reality-gap families: name -> components (docs/drift_families.md).
+        Default: none."""
+        return {}
+
+    def drift_machine(self, *, family: str, seed: int = 101, **options: Any) -> Any:
+        """A simulated machine of drift family ``family`` with draw seed ``seed``, whose hidden
+        state changes with its reading count and which keeps the true (noise-free) observables
+        of its last reading in ``last_true_observables``."""
+        raise NotImplementedError(f"machine kind {self.name!r} has no drift families")
+
     def __repr__(self) -> str:
         return f"<machine kind {self.name!r}: {self.title}>"
 

@@ -29,14 +29,21 @@ class AresKind(MachineKind):
     default_method = "ares-physics"
     title = "ARES-EA linac segment (DESY): 5 magnets, 1 screen"
 
-    def model(self, *, trial: int = 3, trials=None, **options: Any):
+    def model(self, *, trial: int = 3, trials=None, family=None, seed: int = 101, **options):
         r"""The machine model for ``trial``'s target (key of the trials file ``trials``, default
         the shipped 0–149); ``options`` go to :func:`.methods.ares_machine_model`
-        (``quad_gain_half_width``, ``segment``, ``lattice``)."""
+        (``quad_gain_half_width``, ``segment``, ``lattice``). With ``family`` (and draw
+        ``seed``), the segment has that family's static gaps (:class:`.drift.GapSegment`: quad
+        rolls, corrector map; the time-dependent parts are the machine's, not the model's)."""
         from pigp_torch.machines.ares_ea.methods import ares_machine_model
         from pigp_torch.machines.ares_ea.simulation import load_trials
 
-        return ares_machine_model(load_trials(trials)[int(trial)].target, **options)
+        trial_ = load_trials(trials)[int(trial)]
+        if family is not None:  # the static gaps of a family's machine (rolls, correctors)
+            from pigp_torch.machines.ares_ea.drift import GapSegment, draw_gaps
+
+            options["segment"] = GapSegment(draw_gaps(trial_, family, seed))
+        return ares_machine_model(trial_.target, **options)
 
     def simulator(self, *, trial: int = 3, trials=None, model_error: str = "none", **options):
         r"""The simulated machine of ``trial`` (:class:`.machine.AresMachine`, at the published
@@ -76,6 +83,20 @@ class AresKind(MachineKind):
         from pigp_torch.machines.ares_ea.benchmark import run_ares_benchmark
 
         return run_ares_benchmark(**options)
+
+    def drift_families(self) -> dict[str, frozenset[str]]:
+        """:data:`.drift.ARES_FAMILIES`."""
+        from pigp_torch.machines.ares_ea.drift import ARES_FAMILIES
+
+        return dict(ARES_FAMILIES)
+
+    def drift_machine(self, *, family: str, seed: int = 101, trial: int = 3, trials=None, **kw):
+        r"""Trial ``trial``'s :class:`.drift.AresDriftMachine` of ``family`` with draw ``seed``
+        (:func:`.drift.ares_drift_machine`; ``kw`` go to the machine: ``objective``, ``noise``)."""
+        from pigp_torch.machines.ares_ea.drift import ares_drift_machine
+        from pigp_torch.machines.ares_ea.simulation import load_trials
+
+        return ares_drift_machine(load_trials(trials)[int(trial)], family, seed, **kw)
 
 
 #: The plug-in of this kind.

@@ -66,6 +66,19 @@ class RingKind(MachineKind):
 
         return run_benchmark(**options)
 
+    def drift_families(self) -> dict[str, frozenset[str]]:
+        """:data:`.drift.RING_FAMILIES`."""
+        from pigp_torch.machines.ring.drift import RING_FAMILIES
+
+        return dict(RING_FAMILIES)
+
+    def drift_machine(self, *, family: str, seed: int = 101, **options: Any):
+        r"""Machine ``seed`` (error seed, own loss-rate map) drifting as ``family``
+        (:func:`.drift.ring_drift_machine`; ``options``: ``noise``, ``ring``, ``draw_seed``)."""
+        from pigp_torch.machines.ring.drift import ring_drift_machine
+
+        return ring_drift_machine(int(seed), family, **options)
+
 
 #: The plug-in of this kind.
 KIND = RingKind()

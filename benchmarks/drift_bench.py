@@ -1,0 +1,199 @@
+"""Registry methods on drifting and reality-gap machines (docs/drift_families.md).
+
+Each run builds a method of :data:`pigp_torch.methods.METHODS` through ``RunContext`` on a machine
+of a family (``KINDS[kind].drift_machine``), drives it by ask/tell for N readings (observables
+told to the methods that fit them) and scores the TRUE machine at every reading:
+
+* ``ares``: the true MAE (µm) of (mu_x, sigma_x, mu_y, sigma_y) to the target at each reading;
+  per run the median over readings 150-299 (``--window``), the final MAE (after the set-back to
+  the method's best) and the best MAE; per method the median over trials of each.
+* ``spear3``: the gain against the moving optimum, (f_t(x_t) - f_t(0)) / (f_t* - f_t(0)); per run
+  its mean over evaluations 100-499, per method the mean over seeds (sigma = 0.04 mA/min).
+
+Tuning sets only by default: ARES trials 0-49, SPEAR3 seeds 101 and up; ARES trials 50-149 and
+SPEAR3 seeds 1-24 are held out and need ``--held-out`` (report runs, never tuning).
+
+    nice -n 15 python benchmarks/drift_bench.py ares --family drift --trials 0-2 \\
+        --methods ares-physics published-nm [--readings 300] [--noise 0] [--csv steps.csv]
+    nice -n 15 python benchmarks/drift_bench.py spear3 --family drift --seeds 101-102 \\
+        --methods pigp-physics nelder-mead [--readings 500] \\
+        [--prior docs/data/prior_spear3_seed0_exact.json | --center-ensemble 40]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import pandas as pd
+import torch
+
+from pigp_torch._utils import DTYPE, default_dtype
+from pigp_torch.machines import KINDS
+from pigp_torch.machines.ares_ea.simulation import parse_trial_ids
+from pigp_torch.machines.drift import drive, window_statistic
+from pigp_torch.methods import METHODS, RunContext
+
+ARES_HELD_OUT = range(50, 300)
+RING_HELD_OUT = range(1, 25)
+
+
+def ares_run(args) -> dict:
+    """One ARES run: ``(trial, method, family, seed, readings, noise, window)`` -> scores and the
+    per-reading true MAE (µm)."""
+    from pigp_torch.machines.ares_ea.benchmark import check_ares_methods
+    from pigp_torch.machines.ares_ea.methods import ares_objective_for
+
+    trial, method, family, seed, readings, noise, window = args
+    torch.set_num_threads(1)
+    (spec,) = check_ares_methods([method])
+    machine = KINDS["ares-ea"].drift_machine(
+        family=family, seed=seed, trial=trial, objective=ares_objective_for(method), noise=noise
+    )
+    ctx = RunContext(machine=machine, prior=None, seed=seed + trial, archive_size=0,
+                     noise=noise if noise > 0 else None, maximize=machine.maximize)  # fmt: skip
+    t0 = time.perf_counter()
+    with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
+        torch.manual_seed(seed + trial)
+        _, true = drive(machine, spec.build(ctx), readings)
+    mae = ((true - machine.target).abs().mean(-1) * 1e6).numpy()
+    return {
+        "kind": "ares", "method": method, "id": trial, "family": family,
+        "window_median": window_statistic(mae[:-1], window, "median"),
+        "final": float(mae[-1]), "best": float(mae[:-1].min()),
+        "series": mae, "seconds": time.perf_counter() - t0,
+    }  # fmt: skip
+
+
+def spear3_run(args) -> dict:
+    """One SPEAR3 run: ``(seed, method, family, readings, noise, window, prior)`` -> scores and
+    the per-reading gain against the moving optimum."""
+    from pigp_torch.benchmark.protocol import run_seed
+    from pigp_torch.machines.ring.drift import gain_series
+
+    seed, method, family, readings, noise, window, prior = args
+    torch.set_num_threads(1)
+    spec = METHODS[method]
+    machine = KINDS["spear3"].drift_machine(family=family, seed=seed, noise=noise)
+    ctx = RunContext(machine=machine, prior=prior, seed=run_seed(method, seed), noise=noise,
+                     archive_size=0)  # fmt: skip
+    t0 = time.perf_counter()
+    with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
+        torch.manual_seed(run_seed(method, seed))
+        X, _ = drive(machine, spec.build(ctx), readings, set_back=False)
+    gain, _ = gain_series(machine, X)
+    return {
+        "kind": "spear3", "method": method, "id": seed, "family": family,
+        "window_mean": window_statistic(gain, window, "mean"), "final": float(gain[-1]),
+        "series": gain, "seconds": time.perf_counter() - t0,
+    }  # fmt: skip
+
+
+def _ids(text: str, held_out: range, allow: bool, what: str) -> list[int]:
+    ids = parse_trial_ids(text)
+    bad = [i for i in ids if i in held_out]
+    if bad and not allow:
+        sys.exit(f"error: {what} {bad} are held out (report only): pass --held-out to run them")
+    return ids
+
+
+def _summary(runs: list[dict]) -> str:
+    lines = []
+    for method in dict.fromkeys(r["method"] for r in runs):
+        rs = [r for r in runs if r["method"] == method]
+        if rs[0]["kind"] == "ares":
+            med = {k: float(np.median([r[k] for r in rs])) for k in ("window_median", "final",
+                                                                     "best")}  # fmt: skip
+            lines.append(
+                f"{method:<14} {len(rs):>3} trials  median true MAE over window "
+                f"{med['window_median']:8.1f} um  final {med['final']:8.1f} um  "
+                f"best {med['best']:8.1f} um"
+            )
+        else:
+            lines.append(
+                f"{method:<14} {len(rs):>3} seeds  mean gain over window "
+                f"{np.mean([r['window_mean'] for r in rs]):.3f}  "
+                f"final {np.mean([r['final'] for r in rs]):.3f} (fractions of the moving gain)"
+            )
+    return "\n".join(lines)
+
+
+def _jobs(a) -> tuple[list, object]:
+    if a.kind == "ares":
+        trials = _ids(a.trials, ARES_HELD_OUT, a.held_out, "ARES trials")
+        window = tuple(a.window or (150, 300))
+        return [(t, m, a.family, a.seed, a.readings, a.noise, window)
+                for m in a.methods for t in trials], ares_run  # fmt: skip
+    seeds = _ids(a.seeds, RING_HELD_OUT, a.held_out, "SPEAR3 seeds")
+    window = tuple(a.window or (100, 500))
+    prior = None
+    if a.prior:
+        from pigp_torch.prior import PhysicsPrior
+
+        prior = PhysicsPrior.load(a.prior)
+        print(f"prior: {a.prior}", flush=True)
+    elif any(METHODS[m].needs_prior for m in a.methods):
+        from pigp_torch.benchmark.protocol import model_prior
+
+        print(f"prior: model ring 0, {a.center_ensemble} ensemble rings", flush=True)
+        prior = model_prior(0, noise=a.noise, center_ensemble=a.center_ensemble)
+    return [(s, m, a.family, a.readings, a.noise, window, prior)
+            for m in a.methods for s in seeds], spear3_run  # fmt: skip
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("kind", choices=("ares", "spear3"))
+    p.add_argument("--family", default="drift")
+    p.add_argument("--methods", nargs="+", required=True)
+    p.add_argument("--trials", default="0-2", help="ARES trial ids (tuning: 0-49)")
+    p.add_argument("--seeds", default="101-102", help="SPEAR3 machine seeds (tuning: 101+)")
+    p.add_argument("--seed", type=int, default=101, help="ARES draw seed of the family")
+    p.add_argument("--readings", type=int, default=None, help="default 300 (ARES), 500 (SPEAR3)")
+    p.add_argument("--noise", type=float, default=None,
+                   help="screen noise in m (ARES, default 0) / loss-rate noise in mA/min "
+                        "(SPEAR3, default 0.04)")  # fmt: skip
+    p.add_argument("--window", type=int, nargs=2, default=None, help="readings [lo, hi) scored")
+    p.add_argument("--center-ensemble", type=int, default=40)
+    p.add_argument("--prior", default=None,
+                   help="SPEAR3: a saved prior (e.g. docs/data/prior_spear3_seed0_exact.json, "
+                        "model ring 0 + 40 ensemble rings) instead of computing it")  # fmt: skip
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--held-out", action="store_true")
+    p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
+    a = p.parse_args(argv)
+    ares = a.kind == "ares"
+    a.readings = a.readings or (300 if ares else 500)
+    a.noise = (0.0 if ares else 0.04) if a.noise is None else a.noise
+    try:
+        if a.family not in KINDS["ares-ea" if ares else "spear3"].drift_families():
+            raise ValueError(f"unknown family {a.family!r}")
+        jobs, fn = _jobs(a)
+    except (KeyError, ValueError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    runs = []
+    pool = ProcessPoolExecutor(a.workers) if a.workers > 1 else None
+    for r in pool.map(fn, jobs) if pool else map(fn, jobs):
+        unit = "um" if ares else "of the gain"
+        score = r["window_median"] if ares else r["window_mean"]
+        who = f"{r['method']} {'trial' if ares else 'seed'} {r['id']}"
+        best = f", best {r['best']:.3f} {unit}" if ares else ""
+        print(f"{who}: window {score:.3f} {unit}, final {r['final']:.3f} {unit}{best} "
+              f"({r['seconds']:.0f} s)", flush=True)  # fmt: skip
+        runs.append(r)
+    if pool:
+        pool.shutdown()
+    print(f"\n{a.kind} family {a.family}, {a.readings} readings:\n{_summary(runs)}")
+    if a.csv:
+        rows = [(r["method"], r["id"], t, v) for r in runs for t, v in enumerate(r["series"])]
+        col = "mae_true_um" if ares else "gain"
+        pd.DataFrame(rows, columns=["method", "id", "reading", col]).to_csv(a.csv, index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
