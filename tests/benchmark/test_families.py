@@ -118,13 +118,14 @@ def test_nonsense_family_combinations_raise_clearly(tmp_path):
 @pytest.mark.slow
 def test_error_scale_range_is_the_ensembles_extremes():
     """ERROR_SCALE_RANGE is the least and largest calibrated error scale of the 40 ensemble
-    rings of the user deck with the paper13 knobs."""
+    rings of the user deck with the paper13 knobs. The calibration is a root search whose last
+    digits depend on the CPU's round-off (6e-6 apart on two CPUs), so the match is to 1e-4."""
     from pigp_torch.simulation import Spear3Coupling
     from pigp_torch.simulation.ensemble import ensemble_seeds
 
     scales = [Spear3Coupling(s).error_scale for s in ensemble_seeds(40)]
-    assert min(scales) == pytest.approx(ERROR_SCALE_RANGE[0], rel=1e-6)
-    assert max(scales) == pytest.approx(ERROR_SCALE_RANGE[1], rel=1e-6)
+    assert min(scales) == pytest.approx(ERROR_SCALE_RANGE[0], rel=1e-4)
+    assert max(scales) == pytest.approx(ERROR_SCALE_RANGE[1], rel=1e-4)
 
 
 @pytest.mark.slow
