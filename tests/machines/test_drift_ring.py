@@ -83,8 +83,10 @@ def test_gain_against_the_moving_optimum_closed_form(machine):
     x_star, _ = find_optimum(F, machine.bounds, n_starts=2,
                              x_init=torch.zeros(1, K, dtype=torch.float64))  # fmt: skip
     moving = torch.stack([x_star - machine.theta_at(t)[:K] for t in range(T)])
-    gain, f_star = R.gain_series(machine, moving, grid=1000, n_starts=2)
-    assert np.allclose(gain, 1.0, atol=2e-3)  # f* searched at 0, 250, 251 and interpolated
+    gain, f_star = R.gain_series(machine, moving, grid=50, n_starts=2)
+    # f* searched every 50 readings and at 249, 250, interpolated between: 1 - 7e-5 at worst
+    # here (searched only at 0, 249, 250, 251 the interpolation alone costs 1.6e-3 mid-way)
+    assert np.allclose(gain, 1.0, atol=1e-3)
     zero_gain, _ = R.gain_series(machine, torch.zeros(T, K, dtype=torch.float64), grid=1000,
                                  n_starts=2)  # fmt: skip
     assert np.abs(zero_gain).max() == 0.0

@@ -113,8 +113,8 @@ def test_published_nm_runs_online_and_logs_the_beam(tmp_path):
     assert f"best reading {1e6 * float(log.Y()[i]):.6g} µm at evaluation {i + 1}" in page
     assert "AREAMCVM1 in rad" in page and "AREAMQZM1 in 1/m^2" in page
     state = run_state(tmp_path / "run.jsonl")  # the dashboard's page reads the same log
-    assert state["n"] == 10 and state["objective_unit"] == "m"
-    assert state["best_y"] == pytest.approx(float(log.Y()[i]), rel=1e-12)
+    assert state["n"] == 10 and state["objective_unit"] == "µm"  # shown in µm, logged in m
+    assert state["best_y"] == pytest.approx(1e6 * float(log.Y()[i]), rel=1e-12)
 
 
 @pytest.mark.slow
