@@ -194,11 +194,10 @@ def _true_optimum(machine, bounds: torch.Tensor, X: torch.Tensor, true: torch.Te
     (:func:`~pigp_torch._utils.multistart.find_optimum`) from the :data:`OPTIMUM_STARTS`
     settings of the run (``X``, ``n x d``) with the largest noise-free values ``true`` (``n``).
 
-    A run's best settings lie on the slope of the maximum it climbs, and on the simulated
-    machines tried these few starts reach the optimum that a wide search (8 Sobol starts, the
-    zero knobs and the run's best setting) finds, at a fraction of its cost (one L-BFGS-B
-    problem over all starts: the cost grows with their number): the values agree within 1e-9
-    relative (``tests/test_report.py`` compares the two).
+    A run's best settings lie on the slope of the maximum it climbs, so a few starts there
+    suffice where a wide search (8 Sobol starts, the zero knobs and the run's best setting)
+    spends its cost on starts far from it (one L-BFGS-B problem over all starts: the cost grows
+    with their number). ``tests/test_report.py`` checks that both find the same optimum.
 
     Returns:
         ``(x_star, f_star)``: ``d`` knob setting and its value (objective units).
