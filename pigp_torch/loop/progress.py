@@ -163,7 +163,7 @@ class _ReportingBuilder:
         line = ProgressLine(
             self.budget,
             self.knob_names,
-            maximize=getattr(optimizer, "maximize", True),
+            maximize=optimizer.maximize,
             unit=self.unit,
             objective_unit=self.objective_unit,
             label=f"{self.name:>14}",

@@ -15,9 +15,8 @@ from pigp_torch.loop.signals import RunAborted, SignalGuard
 _RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
 
 
-def knob_columns(knob_names, objective, d: int) -> list[str]:
-    if knob_names is None:
-        knob_names = getattr(objective, "knob_names", None)
+def knob_columns(knob_names, d: int) -> list[str]:
+    """The table's knob columns: ``knob_names`` (``d``, checked), ``x0 .. x{d-1}`` for ``None``."""
     names = [f"x{i}" for i in range(d)] if knob_names is None else [str(n) for n in knob_names]
     if len(names) != d:
         raise ValueError(f"{len(names)} knob names for {d} knobs")
@@ -49,10 +48,10 @@ def best_row(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
     return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
 
 
-def observables_of(objective) -> list[float] | None:
+def observables_of(machine) -> list[float] | None:
     """The observables of a machine's last reading (``last_observables``, e.g. the four beam
-    numbers on a screen) as floats; ``None`` for a machine (or callable) without them."""
-    obs = getattr(objective, "last_observables", None)
+    numbers on a screen) as floats; ``None`` for a machine without them."""
+    obs = machine.last_observables
     if obs is None:
         return None
     return [float(v) for v in torch.as_tensor(obs, dtype=DTYPE).reshape(-1).tolist()]
@@ -103,7 +102,7 @@ def run_steps(
         bar = tqdm(total=budget, initial=first, desc=str(label))
     try:
         x = x0
-        seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
+        seen = len(optimizer.notices)  # notices of a replay are not repeated
         for step in range(first, budget):
             t_set = time.time()
             ask_time = 0.0
@@ -112,7 +111,7 @@ def run_steps(
                 t0 = time.perf_counter()
                 x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
                 ask_time = time.perf_counter() - t0
-                notices = list(getattr(optimizer, "notices", ())[seen:])
+                notices = list(optimizer.notices[seen:])
                 seen += len(notices)
             if log is not None:
                 for notice in notices:  # the optimizer's own findings, before the move
