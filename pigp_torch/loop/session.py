@@ -26,7 +26,13 @@ from pigp_torch.loop.moves import (
 from pigp_torch.loop.noise import logged_noise, measure_noise
 from pigp_torch.loop.options import RunOptions
 from pigp_torch.loop.readings import ReadingJudge
-from pigp_torch.loop.steps import knob_columns, logged_initial_knobs, observables_of, run_steps
+from pigp_torch.loop.steps import (
+    StepContext,
+    knob_columns,
+    logged_initial_knobs,
+    observables_of,
+    run_steps,
+)
 from pigp_torch.machine.base import check_setting, is_machine_objective
 from pigp_torch.optimizers.base import AskTellOptimizer
 
@@ -297,24 +303,19 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
     if noise is not None and noise["source"] == "to measure":  # before anything moves
         run.noise_info = noise = measure_noise(run, noise["n"])
     objective = run.objective
-    run_steps(
+    ctx = StepContext(
         run.evaluate,
-        optimizer,
-        run.x0,
-        len(rows),
-        run.budget,
-        rows,
-        names=run.names,
-        label=run.label,
+        run.names,
+        run.label,
         log=run.log,
         x_initial=run.x_initial,
         x_found=run.x_found,
         rb_found=run.rb_found,
         reading_info=(lambda: objective.last_reading) if run.is_machine else (lambda: None),
         observables=(lambda: observables_of(objective)) if run.is_machine else (lambda: None),
+        objective_floor=run.opts.objective_floor,
         callback=callback,
         progress=progress,
-        objective_floor=run.opts.objective_floor,
-        guard=guard,
         start_fields={} if noise is None else {"noise": noise},
     )
+    run_steps(ctx, optimizer, run.x0, rows, first=len(rows), budget=run.budget, guard=guard)
