@@ -16,8 +16,9 @@ layer  units
        ``machines.ring``); a kind imports the core, never another kind
 9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard),
        ``machines.contract`` (the contract tests every machine kind inherits)
-8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
-7      ``testing`` (the simulated ring as EPICS servers)
+8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress),
+       ``testing`` (the old path of ``simulated_epics``: aliases only)
+7      ``simulated_epics`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)
@@ -49,8 +50,8 @@ LAYERS: dict[str, int] = {
     **dict.fromkeys(("cli", ROOT), 12),
     **dict.fromkeys(("commands", "badger_plugins"), 11),
     **dict.fromkeys(("benchmark", "reporting", "machines.contract"), 9),
-    "loop": 8,
-    "testing": 7,
+    **dict.fromkeys(("loop", "testing"), 8),
+    "simulated_epics": 7,
     **dict.fromkeys(("methods", "machine"), 6),
     "integrations": 5,
     "optimizers": 4,

@@ -195,7 +195,7 @@ def test_a_run_over_channel_access_against_the_simulated_ioc(tmp_path, capsys):
     import torch
 
     from pigp_torch.machine.epics import EpicsMachine
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     start = torch.tensor(list(X_INIT.values()), dtype=torch.float64)
     bounds = torch.tensor([[-0.01, -0.01], [0.01, 0.01]], dtype=torch.float64)
