@@ -328,7 +328,7 @@ def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
     the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
     import torch
 
-    from pigp_torch.benchmark.protocol import benchmark_ring
+    from pigp_torch.bench.protocol import benchmark_ring
     from pigp_torch.simulation import Spear3Coupling
     from pigp_torch.simulation.spec import RingSpec
 

@@ -89,7 +89,7 @@ def simulated_ring(config: RunConfig):
     (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
     range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
     loss-rate map that the benchmark gives machine ``error_seed``
-    (:func:`~pigp_torch.benchmark.protocol.machine_loss_map` of the ring's own map).
+    (:func:`~pigp_torch.bench.protocol.machine_loss_map` of the ring's own map).
 
     Raises:
         ConfigError: a knob name the lattice does not have, or a lattice file that does not load.
