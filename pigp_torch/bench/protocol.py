@@ -205,7 +205,7 @@ def run_one(
         table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
         table.insert(1, "machine_seed", int(machine_seed))
         notes = {}  # the optimizer's notices, on the row of the step whose ask made them
-        for n in getattr(optimizer, "notices", ()):
+        for n in optimizer.notices:
             notes.setdefault(int(n["at_told"]), n["kind"])
         table["notice"] = [notes.get(int(s), "") for s in table["step"]]
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
