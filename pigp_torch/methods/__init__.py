@@ -13,7 +13,8 @@ in the kind's folder).
   fitted online (:mod:`~pigp_torch.methods.physics`); uses the prior's error-ensemble fields
   (``center_cov``, ``peak_shape``) when it has them.
 * ``ml2``: BayesOpt with the ML-II diagonal GP (:func:`~pigp_torch.methods.gp.build_ml2`).
-* ``nelder-mead``, ``rcds``: direct methods (:mod:`~pigp_torch.methods.direct`).
+* ``nelder-mead``, ``nelder-mead-restart``, ``rcds``: direct methods
+  (:mod:`~pigp_torch.methods.direct`).
 * ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
   not in run files).
 * the methods of each machine kind (:data:`pigp_torch.machines.KINDS`, registered by
@@ -30,7 +31,7 @@ kernel="rq"))``.
 """
 
 from pigp_torch.machines import KINDS
-from pigp_torch.methods.direct import build_nelder_mead, build_rcds
+from pigp_torch.methods.direct import build_nelder_mead, build_nelder_mead_restart, build_rcds
 from pigp_torch.methods.fast import build_pigp_fast
 from pigp_torch.methods.gp import BO_DEFAULTS, build_ml2, build_pigp
 from pigp_torch.methods.physics import build_pigp_physics
@@ -49,6 +50,7 @@ from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
+from pigp_torch.optimizers.nm_restart import NelderMeadRestart
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 
 _BO = {"forwards_to": (BayesOpt,), "fixed": ("model", "seed")}
@@ -90,6 +92,15 @@ register(
 register(
     MethodSpec("nelder-mead", build_nelder_mead, "direct", run_file=True, forwards_to=(NelderMead,))
 )
+register(
+    MethodSpec(
+        "nelder-mead-restart",
+        build_nelder_mead_restart,
+        "direct",
+        run_file=True,
+        forwards_to=(NelderMeadRestart,),
+    )
+)
 register(MethodSpec("rcds", build_rcds, "direct", run_file=True))
 register(MethodSpec("xopt-ucb", build_xopt_ucb, "gp"))
 # benchmark variants (not in run files)
@@ -119,6 +130,7 @@ __all__ = [
     "RunContext",
     "build_ml2",
     "build_nelder_mead",
+    "build_nelder_mead_restart",
     "build_pigp",
     "build_pigp_fast",
     "build_pigp_physics",

@@ -22,9 +22,10 @@ D = torch.float64
 BOUNDS = torch.tensor([[-1.0, -2.0], [1.0, 2.0]], dtype=D)
 
 
-def test_run_files_accept_the_nine_methods_in_their_order():
-    """The six of any ring, then the three of the ARES-EA linac (machine kind: ares-sim)."""
-    ring = ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "rcds")
+def test_run_files_accept_the_ten_methods_in_their_order():
+    """The seven of any ring, then the three of the ARES-EA linac (machine kind: ares-sim)."""
+    ring = ("pigp", "pigp-fast", "pigp-physics", "ml2", "nelder-mead", "nelder-mead-restart")
+    ring = (*ring, "rcds")
     assert run_file_methods() == (*ring, "published-bo", "published-nm", "ares-physics")
     assert {METHODS[n].machine for n in run_file_methods()} == {None, "ares-ea"}
 
@@ -32,6 +33,7 @@ def test_run_files_accept_the_nine_methods_in_their_order():
 def test_every_method_name_is_known_to_the_benchmark():
     names = {"pigp", "pigp-zero-mean", "pigp-physics", "pigp-physics-box"}
     names |= {"pigp-fast", "ml2", "nelder-mead", "rcds", "xopt-ucb", "xopt-ucb-travel"}
+    names |= {"nelder-mead-restart"}
     names |= {"xopt-pigp"}
     names |= {"published-bo", "published-nm", "ares-physics"}  # the ARES-EA linac's methods
     assert set(METHODS) == names
@@ -42,6 +44,7 @@ def test_every_method_name_is_known_to_the_benchmark():
 def test_run_file_options_come_from_the_builders_signatures():
     assert method_options("rcds") == {"noise", "step", "directions"}
     assert method_options("nelder-mead") == {"initial_simplex_size", "adaptive", "xatol", "fatol"}
+    assert method_options("nelder-mead-restart") == method_options("nelder-mead") | {"period"}
     ml2 = method_options("ml2")
     assert {"refit_every", "noise", "beta", "step_limit"} <= ml2
     assert ml2.isdisjoint({"archive_spread", "learn_noise", "model", "seed", "maximize"})
