@@ -15,8 +15,8 @@ in the kind's folder).
 * ``ml2``: BayesOpt with the ML-II diagonal GP (:func:`~pigp_torch.methods.gp.build_ml2`).
 * ``nelder-mead``, ``nelder-mead-restart``, ``rcds``: direct methods
   (:mod:`~pigp_torch.methods.direct`).
-* ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``: through Xopt (:mod:`~pigp_torch.methods.xopt`;
-  not in run files).
+* ``xopt-ucb``, ``xopt-ucb-travel``, ``xopt-pigp``, ``xopt-tdbo``: through Xopt
+  (:mod:`~pigp_torch.methods.xopt`; not in run files).
 * the methods of each machine kind (:data:`pigp_torch.machines.KINDS`, registered by
   :meth:`~pigp_torch.machines.MachineKind.register_methods`): ``published-bo``, ``published-nm``,
   the published recipes of the ARES-EA linac task, and ``ares-physics``, its model's unknowns
@@ -45,7 +45,12 @@ from pigp_torch.methods.registry import (
     resolve_methods,
     run_file_methods,
 )
-from pigp_torch.methods.xopt import TRAVEL_FRACTION, build_xopt_pigp, build_xopt_ucb
+from pigp_torch.methods.xopt import (
+    TRAVEL_FRACTION,
+    build_xopt_pigp,
+    build_xopt_tdbo,
+    build_xopt_ucb,
+)
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.physics_posterior import PhysicsFormPosterior
 from pigp_torch.optimizers import BayesOpt, NelderMead
@@ -117,6 +122,7 @@ register(
     MethodSpec("xopt-ucb-travel", build_xopt_ucb, "gp", {"max_travel_distances": TRAVEL_FRACTION})
 )
 register(MethodSpec("xopt-pigp", build_xopt_pigp, "gp"))
+register(MethodSpec("xopt-tdbo", build_xopt_tdbo, "gp"))
 # the methods of each machine kind (ARES-EA: published-bo, published-nm, ares-physics)
 for _kind in KINDS.values():
     _kind.register_methods(register)
@@ -136,6 +142,7 @@ __all__ = [
     "build_pigp_physics",
     "build_rcds",
     "build_xopt_pigp",
+    "build_xopt_tdbo",
     "build_xopt_ucb",
     "method_options",
     "register",

@@ -21,6 +21,12 @@ Methods (registered in :data:`~pigp_torch.methods.METHODS`):
 * ``xopt-ucb-travel`` — the same with ``max_travel_distances = 0.15`` of each knob's range (the
   safety limit Xopt/Badger users set on a machine; ±0.15 of the range is our trust box of ±0.3 of
   the half-range, but Xopt centres it on the LAST point, not the best one).
+* ``xopt-tdbo`` — Xopt's time-dependent UCB (Kuklev et al., NAPAC 2022), the Xopt answer to a
+  drifting machine: :class:`~pigp_torch.integrations.xopt_time.ReadingClockTDUCB`, a GP over the
+  knobs and time (spectral-mixture kernel on time times an ARD Matérn 5/2 on the knobs, trained at
+  every step) whose UCB (``beta = 2``) is maximised at the time of the next reading; time is the
+  reading index (deterministic), every reading kept (``forgetting_time = None``); otherwise as
+  ``xopt-ucb`` (no travel limit, ``max_time = None``).
 * ``xopt-pigp`` — Xopt's UCB generator with
   :class:`~pigp_torch.integrations.xopt.PhysicsModelConstructor` (the physics prior's kernel, mean
   :math:`f_\infty` and noise, frozen), ``beta = 4`` (the authors' :math:`\mu + 2\sigma`) and
@@ -126,5 +132,42 @@ def build_xopt_pigp(
     constructor = PhysicsModelConstructor(prior=ctx.prior, kernel=kernel, mean=mean)
     gen = UpperConfidenceBoundGenerator(
         vocs=vocs, gp_constructor=constructor, **kwargs, **generator_options
+    )
+    return XoptOptimizer(gen, seed=ctx.seed)
+
+
+def build_xopt_tdbo(
+    ctx: RunContext,
+    *,
+    beta: float = 2.0,
+    added_time: float = 1.0,
+    forgetting_time: float | None = None,
+    max_travel_distances: float | None = None,
+    max_time: float | None = None,
+    n_restarts: int = 20,
+    **generator_options,
+):
+    r"""Xopt's time-dependent UCB on the reading clock as an ask/tell optimizer.
+
+    Args:
+        ctx: the run context (bounds, knob names and direction from ``ctx``).
+        beta: UCB :math:`\beta` (Xopt default 2.0).
+        added_time: readings from the last reading to the target time of a proposal (default 1:
+            the next reading).
+        forgetting_time: readings of memory (``None``, default: all).
+        max_travel_distances, max_time, n_restarts: as in :func:`build_xopt_ucb`.
+        **generator_options: further ``TDUpperConfidenceBoundGenerator`` fields.
+    """
+    from pigp_torch.integrations.xopt import XoptOptimizer, vocs_from_bounds
+    from pigp_torch.integrations.xopt_time import ReadingClockTDUCB
+
+    vocs = vocs_from_bounds(ctx.machine.knob_names, ctx.bounds, maximize=ctx.maximize)
+    kwargs = _generator_kwargs(ctx, beta, max_travel_distances, max_time, n_restarts)
+    gen = ReadingClockTDUCB(
+        vocs=vocs,
+        added_time=added_time,
+        forgetting_time=forgetting_time,
+        **kwargs,
+        **generator_options,
     )
     return XoptOptimizer(gen, seed=ctx.seed)

@@ -33,7 +33,7 @@ def test_run_files_accept_the_ten_methods_in_their_order():
 def test_every_method_name_is_known_to_the_benchmark():
     names = {"pigp", "pigp-zero-mean", "pigp-physics", "pigp-physics-box"}
     names |= {"pigp-fast", "ml2", "nelder-mead", "rcds", "xopt-ucb", "xopt-ucb-travel"}
-    names |= {"nelder-mead-restart"}
+    names |= {"nelder-mead-restart", "xopt-tdbo"}
     names |= {"xopt-pigp"}
     names |= {"published-bo", "published-nm", "ares-physics"}  # the ARES-EA linac's methods
     assert set(METHODS) == names
