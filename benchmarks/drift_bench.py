@@ -14,10 +14,18 @@ Tuning sets only by default: ARES trials 0-49, SPEAR3 seeds 101 and up; ARES tri
 SPEAR3 seeds 1-24 are held out and need ``--held-out`` (report runs, never tuning).
 
     nice -n 15 python benchmarks/drift_bench.py ares --family drift --trials 0-2 \\
-        --methods ares-physics published-nm [--readings 300] [--noise 0] [--csv steps.csv]
+        --methods ares-physics published-nm [--readings 300] [--noise 0] [--csv steps.csv] \\
+        [--summary]
     nice -n 15 python benchmarks/drift_bench.py spear3 --family drift --seeds 101-102 \\
         --methods pigp-physics nelder-mead [--readings 500] \\
         [--prior docs/data/prior_spear3_seed0_exact.json | --center-ensemble 40]
+    python benchmarks/drift_bench.py ares --from-csv a.csv b.csv   # one --summary table of runs
+
+The compared methods of a drifting machine: ``nelder-mead-restart`` (re-measured best, restart
+every 50 readings), ``xopt-tdbo`` (Xopt's time-dependent UCB on the reading clock), ``ml2``,
+``published-bo`` (ARES), next to ``nelder-mead``, ``published-nm`` and the physics methods. The
+ARES final reading is taken at the optimizer's ``recommend()`` (its estimate of the best setting
+now) where it has one, else at its best reading.
 """
 
 from __future__ import annotations
@@ -58,7 +66,9 @@ def ares_run(args) -> dict:
     t0 = time.perf_counter()
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
-        _, true = drive(machine, spec.build(ctx), readings)
+        optimizer = spec.build(ctx)
+        _, true = drive(machine, optimizer, readings, set_back=False)
+        true = torch.cat([true, set_back(machine, optimizer)[None]])
     mae = ((true - machine.target).abs().mean(-1) * 1e6).numpy()
     return {
         "kind": "ares", "method": method, "id": trial, "family": family,
@@ -66,6 +76,16 @@ def ares_run(args) -> dict:
         "final": float(mae[-1]), "best": float(mae[:-1].min()),
         "series": mae, "seconds": time.perf_counter() - t0,
     }  # fmt: skip
+
+
+def set_back(machine, optimizer) -> torch.Tensor:
+    """Set the knobs to the optimizer's estimate of the best setting now (``recommend()``, e.g.
+    the re-measured best of ``nelder-mead-restart``; ``best()``'s setting for optimizers without
+    one), take one reading and return its ``m`` true observables."""
+    recommend = getattr(optimizer, "recommend", None)
+    machine.set(recommend() if recommend is not None else optimizer.best()[0])
+    machine.read()
+    return machine.last_true_observables.clone()
 
 
 def spear3_run(args) -> dict:
@@ -121,6 +141,52 @@ def _summary(runs: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _median_iqr(values, digits: int) -> str:
+    q1, med, q3 = np.percentile(np.asarray(values, dtype=float), [25, 50, 75])
+    return f"{med:.{digits}f} ({q1:.{digits}f}–{q3:.{digits}f})"
+
+
+def summary_table(runs: list[dict]) -> str:
+    r"""Markdown table, one row per method: the median over machines (trials / seeds) of each
+    run's score, with the interquartile range in brackets (numpy's linear percentiles).
+
+    ARES: the median true MAE over the window, the final and the best true MAE (µm). SPEAR3: the
+    mean gain over the window and the gain at the last reading (fractions of the moving gain).
+    """
+    ares = runs[0]["kind"] == "ares"
+    cols = ("window_median", "final", "best") if ares else ("window_mean", "final")
+    head = ("median true MAE over window (µm)", "final MAE (µm)", "best MAE (µm)") if ares else (
+        "mean gain over window", "gain at the last reading")  # fmt: skip
+    lines = [f"| method | {'trials' if ares else 'seeds'} | " + " | ".join(head) + " |",
+             "|---|---|" + "---|" * len(cols)]  # fmt: skip
+    for method in dict.fromkeys(r["method"] for r in runs):
+        rs = [r for r in runs if r["method"] == method]
+        cells = " | ".join(_median_iqr([r[c] for r in rs], 1 if ares else 3) for c in cols)
+        lines.append(f"| {method} | {len(rs)} | {cells} |")
+    return "\n".join(lines)
+
+
+def runs_from_csv(paths, window: tuple[int, int]) -> list[dict]:
+    """The runs of per-reading tables written by ``--csv`` (ARES: the last row of a run is the
+    set-back reading), scored over ``window``."""
+    runs = []
+    for path in paths:
+        df = pd.read_csv(path)
+        ares = "mae_true_um" in df.columns
+        col = "mae_true_um" if ares else "gain"
+        for (method, rid), g in df.groupby(["method", "id"], sort=False):
+            v = g.sort_values("reading")[col].to_numpy()
+            run = {"kind": "ares" if ares else "spear3", "method": method, "id": int(rid),
+                   "series": v, "final": float(v[-1])}  # fmt: skip
+            if ares:
+                run.update(window_median=window_statistic(v[:-1], window, "median"),
+                           best=float(v[:-1].min()))  # fmt: skip
+            else:
+                run["window_mean"] = window_statistic(v, window, "mean")
+            runs.append(run)
+    return runs
+
+
 def _jobs(a) -> tuple[list, object]:
     if a.kind == "ares":
         trials = _ids(a.trials, ARES_HELD_OUT, a.held_out, "ARES trials")
@@ -148,7 +214,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("kind", choices=("ares", "spear3"))
     p.add_argument("--family", default="drift")
-    p.add_argument("--methods", nargs="+", required=True)
+    p.add_argument("--methods", nargs="+", default=None, help="required unless --from-csv")
     p.add_argument("--trials", default="0-2", help="ARES trial ids (tuning: 0-49)")
     p.add_argument("--seeds", default="101-102", help="SPEAR3 machine seeds (tuning: 101+)")
     p.add_argument("--seed", type=int, default=101, help="ARES draw seed of the family")
@@ -164,8 +230,23 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--held-out", action="store_true")
     p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
+    p.add_argument("--summary", action="store_true",
+                   help="markdown table: per method the median over machines (IQR)")  # fmt: skip
+    p.add_argument("--from-csv", nargs="+", default=None, metavar="CSV",
+                   help="no runs: the --summary table of tables written by --csv")  # fmt: skip
     a = p.parse_args(argv)
     ares = a.kind == "ares"
+    if a.from_csv:
+        window = tuple(a.window or ((150, 300) if ares else (100, 500)))
+        try:
+            print(summary_table(runs_from_csv(a.from_csv, window)))
+        except (OSError, KeyError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
+    if not a.methods:
+        print("error: --methods is required (or --from-csv)", file=sys.stderr)
+        return 2
     a.readings = a.readings or (300 if ares else 500)
     a.noise = (0.0 if ares else 0.04) if a.noise is None else a.noise
     try:
@@ -188,6 +269,8 @@ def main(argv=None) -> int:
     if pool:
         pool.shutdown()
     print(f"\n{a.kind} family {a.family}, {a.readings} readings:\n{_summary(runs)}")
+    if a.summary:
+        print(f"\n{summary_table(runs)}")
     if a.csv:
         rows = [(r["method"], r["id"], t, v) for r in runs for t, v in enumerate(r["series"])]
         col = "mae_true_um" if ares else "gain"

@@ -1,10 +1,13 @@
 """benchmarks/drift_bench.py: held-out sets and unknown families are refused before any run; a
-short direct-method run prints the scores and writes the per-reading series."""
+short direct-method run prints the scores and writes the per-reading series; the summary table
+and the final reading at the optimizer's recommendation."""
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from tests.benchmark.conftest import load_script
 
@@ -43,3 +46,38 @@ def test_short_ares_run_scores_the_true_beam(bench, tmp_path, capsys):
     text = capsys.readouterr().out
     assert f"best {mae[:-1].min():8.1f} um" in text
     assert f"final {mae[-1]:8.1f} um" in text
+
+
+def test_summary_table_is_the_median_and_iqr_over_trials_and_rebuilds_from_csv(
+    bench, tmp_path, capsys
+):
+    out = tmp_path / "steps.csv"
+    argv = ["ares", "--family", "drift", "--trials", "0-2", "--readings", "14", "--window", "4",
+            "14", "--methods", "nelder-mead", "nelder-mead-restart", "--csv", str(out),
+            "--summary"]  # fmt: skip
+    assert bench.main(argv) == 0
+    printed = capsys.readouterr().out
+    table = pd.read_csv(out)
+    rows = printed[printed.index("| method |") :].strip().splitlines()
+    assert rows[0].startswith("| method | trials | median true MAE over window (µm) |")
+    assert [r.split(" | ")[0] for r in rows[2:]] == ["| nelder-mead", "| nelder-mead-restart"]
+    nm = table[table["method"] == "nelder-mead"]
+    finals = nm.groupby("id")["mae_true_um"].last().to_numpy()
+    q1, med, q3 = np.percentile(finals, [25, 50, 75])
+    assert f"| {med:.1f} ({q1:.1f}–{q3:.1f}) |" in rows[2]
+    assert bench.main(["ares", "--window", "4", "14", "--from-csv", str(out)]) == 0
+    assert capsys.readouterr().out.strip().splitlines() == rows
+
+
+def test_the_final_reading_is_at_the_optimizers_recommendation(bench):
+    from pigp_torch.machines import KINDS
+    from pigp_torch.machines.drift import drive
+    from pigp_torch.optimizers.nm_restart import NelderMeadRestart
+
+    machine = KINDS["ares-ea"].drift_machine(family="drift", seed=101, trial=0, noise=0.0)
+    opt = NelderMeadRestart(machine.bounds, period=8, maximize=machine.maximize)
+    drive(machine, opt, 20, set_back=False)
+    true = bench.set_back(machine, opt)
+    assert [n for n, _, _ in opt.restarts] == [8, 16]
+    assert torch.equal(machine.get(), opt.restarts[-1][1])
+    assert torch.equal(true, machine.last_true_observables)
