@@ -103,7 +103,7 @@ register(
         build_nelder_mead_restart,
         "direct",
         run_file=True,
-        forwards_to=(NelderMeadRestart,),
+        forwards_to=(NelderMeadRestart, NelderMead),
     )
 )
 register(MethodSpec("rcds", build_rcds, "direct", run_file=True))

@@ -21,8 +21,6 @@ Every point stays inside the bounds (the search runs in the unit cube, as Nelder
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
@@ -42,8 +40,8 @@ class NelderMeadRestart(NelderMead):
         bounds: ``2 x d`` knob bounds.
         period: readings per segment, ``>= d + 2`` (the start vertex, ``d`` simplex vertices
             and at least one step); default :data:`DEFAULT_PERIOD` (50).
-        initial_simplex_size, maximize, adaptive, xatol, fatol: as
-            :class:`~pigp_torch.optimizers.NelderMead` (same defaults).
+        **options: ``initial_simplex_size``, ``maximize``, ``adaptive``, ``xatol``, ``fatol``
+            of :class:`~pigp_torch.optimizers.NelderMead` (same defaults).
 
     Attributes:
         restarts: one ``(n_told, x, y)`` per restart: the reading index of the re-measurement,
@@ -55,25 +53,8 @@ class NelderMeadRestart(NelderMead):
 
     name = "nelder-mead-restart"
 
-    def __init__(
-        self,
-        bounds,
-        *,
-        period: int = DEFAULT_PERIOD,
-        initial_simplex_size: float = 0.05,
-        maximize: bool = True,
-        adaptive: bool = True,
-        xatol: float = 1e-4,
-        fatol: float = math.inf,
-    ) -> None:
-        super().__init__(
-            bounds,
-            initial_simplex_size=initial_simplex_size,
-            maximize=maximize,
-            adaptive=adaptive,
-            xatol=xatol,
-            fatol=fatol,
-        )
+    def __init__(self, bounds, *, period: int = DEFAULT_PERIOD, **options) -> None:
+        super().__init__(bounds, **options)
         if int(period) != period or int(period) < self.dim + 2:
             raise ValueError(f"period must be an integer >= d + 2 = {self.dim + 2}, got {period}")
         self.period = int(period)
