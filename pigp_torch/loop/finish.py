@@ -121,8 +121,10 @@ def _restore_best(run: Run, rows: list[dict], out: Ending, reference) -> None:
         out.restored_to = "best"
 
 
-def _restore(run: Run, rows: list[dict], out: Ending) -> None:
-    """Put the knobs where the restore rules say, then read where they are."""
+def _restore(run: Run, rows: list[dict], out: Ending, goal=None) -> None:
+    """Put the knobs where the restore rules say (or at ``goal``, ``(name, x or None)``: a
+    track run's end chosen by its caller; ``None``: left where they are), then read where they
+    are."""
     opts, objective = run.opts, run.objective
     # initial knobs after any failure; initial / best / none after a completed run
     mode = opts.restore if out.error is None else ("none" if opts.restore == "none" else "initial")
@@ -130,7 +132,13 @@ def _restore(run: Run, rows: list[dict], out: Ending) -> None:
         mode = "initial"
     # a knob whose readback was off its setpoint at the start may read off it again
     reference = run.rb_found if torch.equal(run.x_initial, run.x_found) else None
-    if mode == "best":
+    if goal is not None:
+        out.restored_to, out.target = goal
+        if out.target is not None:
+            out.restore_error, out.attempts_made, out.attempt_errors = run.restore_to(
+                out.target, f"restore {out.restored_to}", None
+            )
+    elif mode == "best":
         _restore_best(run, rows, out, reference)
     elif mode == "initial":
         out.target = run.x_initial
@@ -209,11 +217,14 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
             run.log.close()
 
 
-def end_run(run: Run, rows: list[dict], error, status: str, reason: str, guard) -> Ending:
-    """The restore and the end record (signals deferred by the caller)."""
+def end_run(
+    run: Run, rows: list[dict], error, status: str, reason: str, guard, goal=None
+) -> Ending:
+    """The restore and the end record (signals deferred by the caller); ``goal``: see
+    :func:`_restore`."""
     out = Ending(error, status, reason, best_row(rows, run.names, run.maximize))
     if run.is_machine:
-        _restore(run, rows, out)
+        _restore(run, rows, out, goal)
     if error is None and out.restore_error is not None:
         out.status, out.reason = classify(out.restore_error)
         out.reason = f"restoring the knobs failed: {out.reason}"

@@ -281,9 +281,12 @@ def open_log(run: Run, log: RunLog | str | Path | None, resume) -> None:
         )
 
 
-def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, guard) -> None:
-    """Replay the logged evaluations (a resume), then ask -> evaluate -> tell up to the budget;
-    every row is appended to ``rows`` as it is made."""
+def run_all_steps(
+    run: Run, optimizer, rows: list[dict], *, progress, callback, guard, stop=None, record=None
+) -> None:
+    """Replay the logged evaluations (a resume), then ask -> evaluate -> tell up to the budget
+    (or until ``stop()``); every row is appended to ``rows`` as it is made (``record``: see
+    :func:`~pigp_torch.loop.steps.run_steps`)."""
     if run.logged:
         replay(optimizer, run.logged, progress=progress)
         rows.extend(evaluation_rows(run.logged, run.names, run.label))
@@ -311,4 +314,6 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
         objective_floor=run.opts.objective_floor,
         guard=guard,
         start_fields={} if noise is None else {"noise": noise},
+        stop=stop,
+        record=record,
     )

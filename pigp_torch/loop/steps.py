@@ -90,10 +90,14 @@ def run_steps(
     objective_floor,
     guard: SignalGuard,
     start_fields=(),
+    stop=None,
+    record=None,
 ) -> None:
     """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`, appended to ``rows``.
     ``observables()``: those of the evaluation's reading (the last one taken) or ``None``, logged
-    with it and told to an optimizer that fits them; ``start_fields``: in the start record."""
+    with it and told to an optimizer that fits them; ``start_fields``: in the start record;
+    ``stop()`` (checked before each step after the first): true ends the steps early (a track
+    run's time limit); ``record()``: more fields of each evaluation record (its ``tracked``)."""
     if log is not None:
         _log_start(log, x_initial, x_found, rb_found, budget, first, start_fields)
     bar = None
@@ -105,6 +109,8 @@ def run_steps(
         x = x0
         seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
         for step in range(first, budget):
+            if step > 0 and stop is not None and stop():
+                break
             t_set = time.time()
             ask_time = 0.0
             notices: list[dict] = []
@@ -133,6 +139,7 @@ def run_steps(
                         ask_time_s=ask_time, eval_time_s=eval_time,
                         **({"reading": info} if isinstance(info, dict) else {}),
                         **({"observables": obs} if obs is not None else {}),
+                        **(record() if record is not None else {}),
                     )  # fmt: skip
                 rows.append(row)
             t0 = time.perf_counter()
