@@ -240,10 +240,17 @@ class RunSetup:
 
     def run(self, *, log=None, resume=None, progress: bool = False, callback=None):
         r"""Run the loop with the configured safety options (ramped moves, read retries, floor,
-        restore, readback check); returns the evaluation table (see :func:`pigp_torch.optimize`).
+        restore, readback check); returns the evaluation table (see :func:`pigp_torch.optimize`;
+        ``mode: track``: :func:`pigp_torch.loop.track`).
         """
-        from pigp_torch.loop import optimize
+        from pigp_torch.loop import optimize, track
 
+        c = self.config
+        if c.mode == "track":  # until stopped, the time limit or budget readings
+            return track(self.machine, self.optimizer, c.budget, time_limit_s=c.time_limit_s(),
+                         end_at=c.restore, recent=c.best_window, method=self.method,
+                         progress=progress, callback=callback, log=log, resume=resume,
+                         options=self.options())  # fmt: skip
         return optimize(
             self.machine,
             self.optimizer,
@@ -265,8 +272,9 @@ class RunSetup:
         from pigp_torch.loop import RunOptions
 
         c = self.config
+        restore = {"current": "none"}.get(c.restore, c.restore)
         return RunOptions(
-            restore=c.restore,
+            restore="initial" if c.mode == "track" else restore,  # a track run: its own end
             read_retries=c.read_retries,
             retry_interval=c.retry_interval,
             objective_floor=c.objective_floor,
