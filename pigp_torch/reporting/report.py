@@ -47,7 +47,9 @@ from pigp_torch.reporting.figures import (  # noqa: F401
     in_display_units,
     plot_compare,
     plot_run,
+    plot_time,
 )
+from pigp_torch.reporting.timeline import timeline
 
 
 def _load_run_config(records):
@@ -107,7 +109,9 @@ def run_report(
         true optimum within the run's bounds; else ``None``), ``fit``
         (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings), ``budget``,
         ``status``, ``observables`` (``n x m`` what each reading also measured, or ``None``),
-        ``observable_names`` and ``observable_units`` (the header's, ``[]`` without).
+        ``observable_names`` and ``observable_units`` (the header's, ``[]`` without),
+        ``timeline`` (:func:`~pigp_torch.reporting.timeline.timeline`: the readings' times and
+        the tracked unknowns).
 
     Raises:
         FileNotFoundError: no such log.
@@ -182,6 +186,7 @@ def _run_report(path, records, noise, fit, say) -> dict:
         "observables": records.observables(),
         "observable_names": records.observable_names,
         "observable_units": records.observable_units,
+        "timeline": timeline(records.evaluations),
     }
 
 
@@ -261,15 +266,20 @@ def compare_report(folder: str | Path) -> dict:
     return {"path": folder, "runs": df, "notices": notes}
 
 
-def html_page(title: str, png: Path, lines: list[str]) -> str:
-    """A self-contained HTML page: ``title``, the PNG embedded as base64, ``lines`` as text."""
-    data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
+def html_page(title: str, png: Path | list[Path], lines: list[str]) -> str:
+    """A self-contained HTML page: ``title``, the PNG(s) embedded as base64, ``lines`` as
+    text."""
+    pngs = [png] if isinstance(png, (str, Path)) else list(png)
+    images = "\n".join(
+        "<img alt='report' style='max-width:100%' src='data:image/png;base64,"
+        f"{base64.b64encode(Path(p).read_bytes()).decode('ascii')}'>"
+        for p in pngs
+    )
     items = "\n".join(f"<li>{html.escape(s)}</li>" for s in lines)
     return (
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
         f"<title>{html.escape(title)}</title></head>\n<body style='font-family:sans-serif'>\n"
-        f"<h1>{html.escape(title)}</h1>\n<img alt='report' style='max-width:100%' "
-        f"src='data:image/png;base64,{data}'>\n<ul style='font-family:monospace'>\n{items}\n"
+        f"<h1>{html.escape(title)}</h1>\n{images}\n<ul style='font-family:monospace'>\n{items}\n"
         "</ul>\n</body></html>\n"
     )
 
@@ -286,7 +296,9 @@ def write_report(
         noise, progress: as in :func:`run_report`.
 
     Returns:
-        ``(png, html)`` paths.
+        ``(png, html)`` paths (a run log's page also embeds ``<out>_time.png``: the run
+        against wall-clock time with the tracked unknowns,
+        :func:`~pigp_torch.reporting.timeline.draw_time`).
 
     Raises:
         FileNotFoundError, ValueError: as :func:`run_report` / :func:`compare_report`.
@@ -302,10 +314,12 @@ def write_report(
         data = run_report(target, noise=noise, progress=progress)
         base = Path(out) if out is not None else target.with_name(target.stem + "_report")
         png = plot_run(data, base.with_suffix(".png"))
+        pngs = [png, plot_time(data, base.with_name(base.name + "_time.png"))]
         title = f"pigp run: {target.name} ({data['method']})"
         lines = [*_summary(data), *data["notices"]]
     page = base.with_suffix(".html")
-    page.write_text(html_page(title, png, lines), encoding="utf-8")
+    page.write_text(html_page(title, pngs if not target.is_dir() else png, lines),
+                    encoding="utf-8")  # fmt: skip
     return png, page
 
 
