@@ -187,7 +187,8 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     known = getattr(run.log, "write_error", None)
     try:
         end = {"restored_to": out.restored_to, "final_knobs": out.final_knobs}
-        end.update(n_evaluations=len(rows), best=out.best)
+        n = rows[-1]["step"] + 1 if rows else 0  # rows may be the last ones only (a track run)
+        end.update(n_evaluations=n, best=out.best)
         if run.is_machine:
             end.update(restored=out.restored, last_setpoint=run.last_acknowledged())
             end.update(last_intended=run.sent["last"], final_setpoints=out.final_setpoints)

@@ -298,7 +298,7 @@ def run_all_steps(
         run.evaluate,
         optimizer,
         run.x0,
-        len(rows),
+        len(run.logged),
         run.budget,
         rows,
         names=run.names,

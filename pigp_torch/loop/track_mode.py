@@ -8,6 +8,11 @@ Every safety rule of the one-shot path holds unchanged (the same start, steps an
 checked ramps within ``max_step``, intent records, the hash-chained log, plausible-reading
 checks, alarm severity, the noise measured at the start, the objective floor).
 
+**Bounded memory.** A shift is long: the loop keeps the last ``keep`` evaluations in memory
+(default :data:`KEEP_ROWS`; the returned table and the end record's ``best`` are of those; the
+run log holds every one), so a run of any length holds the same memory and file descriptors
+(the optimizer's own history is the optimizer's: a tracker forgets).
+
 Each evaluation record also carries ``tracked``: the optimizer's tracked unknowns
 (:meth:`~pigp_torch.optimizers.base.AskTellOptimizer.tracked`, ``{name: [value, unit]}``, the
 estimate the setting was asked with), beside its wall-clock times ``t_set`` / ``t_read`` (s
@@ -43,6 +48,7 @@ import dataclasses
 import math
 import time
 import warnings
+from collections import deque
 from collections.abc import Callable
 
 import pandas as pd
@@ -59,6 +65,8 @@ from pigp_torch.loop.signals import SignalGuard, classify
 TRACK_ENDS = ("estimate", "best", "current", "initial")
 #: Default number of recent readings among which ``end_at="best"`` picks.
 RECENT_READINGS = 20
+#: Default number of evaluations a track run keeps in memory (its table).
+KEEP_ROWS = 1000
 
 
 def tracked_record(optimizer) -> dict:
@@ -82,7 +90,7 @@ def _estimate(run: Run, optimizer) -> tuple[torch.Tensor | None, str]:
 
 def _recent_best(run: Run, rows: list[dict], recent: int) -> torch.Tensor | None:
     """The setting of the best of the last ``recent`` readings (``None`` without readings)."""
-    window = rows[-recent:]
+    window = list(rows)[-recent:]
     if not window:
         return None
     ys = torch.tensor([r["y"] for r in window], dtype=DTYPE)
@@ -111,7 +119,7 @@ def end_goal(run: Run, optimizer, rows: list[dict], end_at: str, recent: int):
     return None
 
 
-def _check(max_readings, time_limit_s, end_at: str, recent) -> None:
+def _check(max_readings, time_limit_s, end_at: str, recent, keep) -> None:
     if int(max_readings) != max_readings or max_readings < 1:
         raise ValueError(f"max_readings must be a positive integer, got {max_readings}")
     if not (0.0 < float(time_limit_s) < math.inf):
@@ -120,6 +128,8 @@ def _check(max_readings, time_limit_s, end_at: str, recent) -> None:
         raise ValueError(f"end_at must be one of {TRACK_ENDS}, got {end_at!r}")
     if int(recent) != recent or recent < 1:
         raise ValueError(f"recent must be a positive integer, got {recent}")
+    if int(keep) != keep or keep < recent:
+        raise ValueError(f"keep must be an integer >= recent ({recent}), got {keep}")
 
 
 def track(
@@ -131,6 +141,7 @@ def track(
     time_limit_s: float,
     end_at: str = "estimate",
     recent: int = RECENT_READINGS,
+    keep: int = KEEP_ROWS,
     knob_names=None,
     method: str | None = None,
     progress: bool = False,
@@ -152,6 +163,7 @@ def track(
         time_limit_s: the wall-clock limit, seconds from this call (> 0).
         end_at: ``"estimate"`` (default), ``"best"``, ``"current"`` or ``"initial"``.
         recent: the readings among which ``end_at="best"`` picks (default 20).
+        keep: evaluations kept in memory (>= ``recent``; default :data:`KEEP_ROWS`).
         knob_names, method, progress, callback, log, resume: as
             :func:`~pigp_torch.loop.optimize`.
         options: the safety options (:class:`~pigp_torch.loop.RunOptions`; its ``restore``
@@ -159,13 +171,13 @@ def track(
         clock: seconds, monotonic (default :func:`time.monotonic`; tests pass their own).
 
     Returns:
-        the evaluation table of :func:`~pigp_torch.loop.optimize`.
+        the evaluation table of :func:`~pigp_torch.loop.optimize`, its last ``keep`` rows.
 
     Raises:
         as :func:`~pigp_torch.loop.optimize`; ``KeyboardInterrupt`` / ``Terminated`` after a
         stop by a signal (re-raised once the knobs are at ``end_at``'s target).
     """
-    _check(max_readings, time_limit_s, end_at, recent)
+    _check(max_readings, time_limit_s, end_at, recent, keep)
     opts = RunOptions() if options is None else options
     if opts.restore == "best":
         raise ValueError("a track run's restore after a failure is initial or none, not best")
@@ -175,16 +187,17 @@ def track(
                     method=method, resume=resume, opts=opts)  # fmt: skip
     open_log(run, log, resume)
     deadline = clock() + float(time_limit_s)
-    rows: list[dict] = []
+    rows: deque[dict] = deque(maxlen=int(keep))
     with SignalGuard(opts.handle_signals) as guard:
         error, status, reason, goal = None, "completed", "", None
         try:
             run_all_steps(run, optimizer, rows, progress=progress, callback=callback, guard=guard,
                           stop=lambda: clock() >= deadline,
                           record=lambda: tracked_record(optimizer))  # fmt: skip
+            n = rows[-1]["step"] + 1 if rows else 0
             reason = (
-                f"the time limit of {float(time_limit_s):g} s passed after {len(rows)} readings"
-                if len(rows) < max_readings
+                f"the time limit of {float(time_limit_s):g} s passed after {n} readings"
+                if n < max_readings
                 else f"max_readings ({int(max_readings)}) made"
             )
         except BaseException as err:
@@ -197,5 +210,5 @@ def track(
                 goal = end_goal(run, optimizer, rows, end_at, recent)
             except KeyboardInterrupt:  # a second signal: leave the knobs where they are
                 goal = ("current (restore abandoned)", None)
-        ending = end_run(run, rows, error, status, reason, guard, goal=goal)
-    return result(run, rows, ending, guard)
+        ending = end_run(run, list(rows), error, status, reason, guard, goal=goal)
+    return result(run, list(rows), ending, guard)

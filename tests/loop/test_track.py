@@ -195,3 +195,18 @@ def test_bad_arguments_are_refused():
 def test_a_one_shot_run_logs_no_tracked_field(tmp_path):
     optimize(Drifting(), FakeTracker(BOUNDS), budget=3, log=tmp_path / "o.jsonl")
     assert all("tracked" not in e for e in read_log(tmp_path / "o.jsonl").evaluations)
+
+
+def test_a_track_run_keeps_only_its_last_evaluations_in_memory(tmp_path):
+    """keep=5 of 12 readings: the table holds steps 7..11, the end record still counts 12 and
+    the log holds all 12; end_at="best" picks among the kept ones."""
+    m = Drifting()
+    table = track(m, FakeTracker(BOUNDS), 12, time_limit_s=3600.0, keep=5, recent=5,
+                  end_at="best", log=tmp_path / "t.jsonl")  # fmt: skip
+    assert table["step"].tolist() == [7, 8, 9, 10, 11]
+    log = read_log(tmp_path / "t.jsonl")
+    assert log.n_evaluations == 12 and log.last_end["n_evaluations"] == 12
+    best = table.loc[table["y"].idxmax(), ["qs1", "qs2"]].tolist()
+    assert m.get().tolist() == best
+    with pytest.raises(ValueError, match="keep must be an integer >= recent"):
+        track(m, FakeTracker(BOUNDS), 5, time_limit_s=1.0, keep=3, recent=4)
