@@ -10,8 +10,10 @@ checks, alarm severity, the noise measured at the start, the objective floor).
 
 **Bounded memory.** A shift is long: the loop keeps the last ``keep`` evaluations in memory
 (default :data:`KEEP_ROWS`; the returned table and the end record's ``best`` are of those; the
-run log holds every one), so a run of any length holds the same memory and file descriptors
-(the optimizer's own history is the optimizer's: a tracker forgets).
+run log holds every one), and the plausible-reading rule compares a reading with the median of
+the last ``keep`` accepted readings (on a drifting machine the level moves; a one-shot run uses
+all of its readings), so a run of any length holds the same memory and file descriptors (the
+optimizer's own history is the optimizer's: a tracker forgets).
 
 Each evaluation record also carries ``tracked``: the optimizer's tracked unknowns
 (:meth:`~pigp_torch.optimizers.base.AskTellOptimizer.tracked`, ``{name: [value, unit]}``, the
@@ -185,6 +187,7 @@ def track(
         opts = dataclasses.replace(opts, restore="initial")
     run = start_run(objective, optimizer, x0, int(max_readings), knob_names=knob_names,
                     method=method, resume=resume, opts=opts)  # fmt: skip
+    run.judge.readings = deque(run.judge.readings, maxlen=int(keep))  # the recent level
     open_log(run, log, resume)
     deadline = clock() + float(time_limit_s)
     rows: deque[dict] = deque(maxlen=int(keep))

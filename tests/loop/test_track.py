@@ -210,3 +210,14 @@ def test_a_track_run_keeps_only_its_last_evaluations_in_memory(tmp_path):
     assert m.get().tolist() == best
     with pytest.raises(ValueError, match="keep must be an integer >= recent"):
         track(m, FakeTracker(BOUNDS), 5, time_limit_s=1.0, keep=3, recent=4)
+
+
+def test_the_plausible_reading_rule_follows_the_recent_level():
+    """With the noise stated, the median/MAD rule of a track run looks at its last ``keep``
+    readings: a machine whose level stepped up by 100 sigma long ago is not re-read forever."""
+    m = Drifting(values={k: (0.0 if k <= 6 else 4.0) + 0.01 * (k % 3) for k in range(1, 41)})
+    table = track(m, FakeTracker(BOUNDS), 30, time_limit_s=3600.0, keep=5, recent=5,
+                  options=RunOptions(noise=0.04))  # fmt: skip
+    assert table["step"].tolist() == [25, 26, 27, 28, 29]
+    # re-reads only while the new level is not yet the median of the last 5 readings
+    assert 30 < m.n_reads <= 30 + 1 + 3
