@@ -69,6 +69,15 @@ def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int, extra
     log.log_start(x_initial, budget=budget, first_step=first, **extra)
 
 
+def _progress_bar(progress: bool, budget: int, first: int, label):
+    """A tqdm bar of the steps (``None`` without ``progress``)."""
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=budget, initial=first, desc=str(label))
+
+
 def run_steps(
     evaluate,
     optimizer,
@@ -95,34 +104,27 @@ def run_steps(
 ) -> None:
     """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`, appended to ``rows``.
     ``observables()``: those of the evaluation's reading (the last one taken) or ``None``, logged
-    with it and told to an optimizer that fits them; ``start_fields``: in the start record;
-    ``stop()`` (checked before each step after the first): true ends the steps early (a track
-    run's time limit); ``record()``: more fields of each evaluation record (its ``tracked``)."""
+    with it and told to an optimizer that fits them; ``start_fields``: in the start record; a
+    track run's ``stop()`` (true before a step after the first ends the steps) and ``record()``
+    (more fields of each evaluation record)."""
     if log is not None:
         _log_start(log, x_initial, x_found, rb_found, budget, first, start_fields)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=budget, initial=first, desc=str(label))
+    bar = _progress_bar(progress, budget, first, label)
     try:
         x = x0
         seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
         for step in range(first, budget):
             if step > 0 and stop is not None and stop():
                 break
-            t_set = time.time()
-            ask_time = 0.0
-            notices: list[dict] = []
+            t_set, ask_time, notices = time.time(), 0.0, []
             if step > 0:
                 t0 = time.perf_counter()
                 x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
                 ask_time = time.perf_counter() - t0
                 notices = list(getattr(optimizer, "notices", ())[seen:])
                 seen += len(notices)
-            if log is not None:
-                for notice in notices:  # the optimizer's own findings, before the move
-                    log.write("notice", step=step, time=_utc_now(), **notice)
+            for notice in notices if log is not None else ():  # its findings, before the move
+                log.write("notice", step=step, time=_utc_now(), **notice)
             t0 = time.perf_counter()
             y, reads = evaluate(x, step=step)  # every move a checked ramp
             info = reading_info()

@@ -158,8 +158,7 @@ def track(
 
     Args:
         objective: a ``Machine`` or a callable ``x (d) -> float`` (never moved or restored).
-        optimizer: an ask/tell optimizer with ``recommend()`` and ``tracked()``
-            (:class:`~pigp_torch.optimizers.base.AskTellOptimizer`).
+        optimizer: an :class:`~pigp_torch.optimizers.base.AskTellOptimizer` (``recommend()``).
         max_readings: the most evaluations (>= 1; a resume counts the logged ones).
         x0: ``d`` start point (``None``: a machine's knobs found; required for a callable).
         time_limit_s: the wall-clock limit, seconds from this call (> 0).
