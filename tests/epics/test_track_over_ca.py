@@ -14,39 +14,19 @@ import signal
 import pytest
 import torch
 
-from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
 
 from .ca_runs import KNOBS, private_locks, start_of, with_optimize, write_config  # noqa: F401
-from .test_faults_over_ca import fault_at_read
+from .test_faults_over_ca import fault_at_read, run, worst_step
+from .test_faults_over_ca import final_setpoints as held
 
 pytestmark = pytest.mark.usefixtures("private_locks", "with_optimize")  # from ca_runs
 
 TRACK = {"mode": "track", "time_limit": "10 min"}
 
 
-def held(ioc, since: int) -> list[float]:
-    """Each knob's setpoint after the last put the IOC accepted for it (since mark ``since``)."""
-    last = {}
-    for p in ioc.puts(since):
-        if p.get("knob") in KNOBS:
-            last[p["knob"]] = p["value"]
-    return [last[k] for k in KNOBS]
-
-
-def worst_step(ioc, since: int, limit: float) -> float:
-    """The largest accepted put's change, in units of the step limit ``limit`` (knob units)."""
-    puts = [p for p in ioc.puts(since) if p.get("knob") in KNOBS]
-    return max(abs(p["value"] - p["previous"]) for p in puts) / limit
-
-
 def best_x(log) -> list[float]:
     return max(log.evaluations, key=lambda e: e["y"])["x"]
-
-
-def run(config, capsys):
-    code = cli.main(["optimize", "--config", config, "--quiet"])
-    return code, capsys.readouterr()
 
 
 def test_a_glitch_in_a_track_run_is_never_its_estimate(ioc, probe, ring, tmp_path, capsys):
@@ -65,8 +45,7 @@ def test_a_glitch_in_a_track_run_is_never_its_estimate(ioc, probe, ring, tmp_pat
     assert end["restored_to"] == "estimate" and end["reason"] == "max_readings (8) made"
     assert float(log.Y().max()) < 5.0
     assert held(ioc, mark) == best_x(log) == end["restore_target"] == end["final_setpoints"]
-    limit = 0.2 * float(ring.bounds[1, 0]) / 2  # max_step 0.2 of the half-range
-    assert worst_step(ioc, mark, limit) <= 1 + 1e-9
+    assert worst_step(ioc, mark) <= 1 + 1e-9  # max_step 0.2 of the half-range (15 A)
 
 
 def test_sigterm_ends_a_track_run_at_its_estimate(ioc, probe, ring, tmp_path, capsys):
