@@ -121,6 +121,25 @@ def _restore_best(run: Run, rows: list[dict], out: Ending, reference) -> None:
         out.restored_to = "best"
 
 
+def _restore_goal(run: Run, out: Ending, goal, reference) -> None:
+    """A track run's end: the knobs to ``goal``, ``(name, x)`` (``x`` ``None``: left where they
+    are); when they cannot be set there (not a second signal), to the initial knobs instead."""
+    out.restored_to, out.target = goal
+    if out.target is None:
+        return
+    out.restore_error, out.attempts_made, out.attempt_errors = run.restore_to(
+        out.target, f"restore {out.restored_to}", None
+    )
+    if out.restore_error is None or isinstance(out.restore_error, KeyboardInterrupt):
+        return
+    # stack: here, _restore, end_run, track, track's caller
+    warnings.warn(f"the knobs could not be set to the {goal[0]}: {out.restore_error}; "
+                  "restoring the initial knobs instead", stacklevel=5)  # fmt: skip
+    out.target, out.restored_to = run.x_initial, f"initial ({goal[0]} not reached)"
+    out.restore_error, more, errs = run.restore_to(out.target, "restore initial", reference)
+    out.attempts_made, out.attempt_errors = out.attempts_made + more, out.attempt_errors + errs
+
+
 def _restore(run: Run, rows: list[dict], out: Ending, goal=None) -> None:
     """Put the knobs where the restore rules say (or at ``goal``, ``(name, x or None)``: a
     track run's end chosen by its caller; ``None``: left where they are), then read where they
@@ -133,11 +152,7 @@ def _restore(run: Run, rows: list[dict], out: Ending, goal=None) -> None:
     # a knob whose readback was off its setpoint at the start may read off it again
     reference = run.rb_found if torch.equal(run.x_initial, run.x_found) else None
     if goal is not None:
-        out.restored_to, out.target = goal
-        if out.target is not None:
-            out.restore_error, out.attempts_made, out.attempt_errors = run.restore_to(
-                out.target, f"restore {out.restored_to}", None
-            )
+        _restore_goal(run, out, goal, reference)
     elif mode == "best":
         _restore_best(run, rows, out, reference)
     elif mode == "initial":

@@ -221,3 +221,23 @@ def test_the_plausible_reading_rule_follows_the_recent_level():
     assert table["step"].tolist() == [25, 26, 27, 28, 29]
     # re-reads only while the new level is not yet the median of the last 5 readings
     assert 30 < m.n_reads <= 30 + 1 + 3
+
+
+def test_an_estimate_the_machine_refuses_ends_at_the_initial_knobs(tmp_path):
+    """The machine refuses the estimate's setting on every attempt: a warning, then the initial
+    knobs (the end record says the estimate was not reached)."""
+
+    class Refusing(Drifting):
+        def _apply(self, x):
+            if x.tolist() == ESTIMATE:
+                raise MachineError("setting refused")
+            super()._apply(x)
+
+    m = Refusing()
+    with pytest.warns(UserWarning, match="could not be set to the estimate.*initial knobs"):
+        track(m, FakeTracker(BOUNDS), 4, time_limit_s=3600.0, log=tmp_path / "t.jsonl",
+              options=RunOptions(restore_interval=0.0))  # fmt: skip
+    assert m.get().tolist() == INITIAL
+    end = read_log(tmp_path / "t.jsonl").last_end
+    assert end["restored_to"] == "initial (estimate not reached)" and end["restored"] is True
+    assert end["restore_target"] == INITIAL and end["restore_attempts"] == 3 + 1
