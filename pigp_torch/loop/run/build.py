@@ -89,7 +89,7 @@ def simulated_ring(config: RunConfig):
     (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
     range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
     loss-rate map that the benchmark gives machine ``error_seed``
-    (:func:`~pigp_torch.benchmark.protocol.machine_loss_map` of the ring's own map).
+    (:func:`~pigp_torch.bench.protocol.machine_loss_map` of the ring's own map).
 
     Raises:
         ConfigError: a knob name the lattice does not have, or a lattice file that does not load.
@@ -195,7 +195,7 @@ def machine_header(machine) -> dict:
     the machine has."""
     out = {}
     for key in ("knob_units", "observable_names", "observable_units"):
-        value = getattr(machine, key, None)
+        value = getattr(machine, key)  # declared by the Machine protocol (default None)
         if value is not None:
             out[key] = [str(v) for v in value]
     return out
@@ -300,7 +300,7 @@ class RunSetup:
         if isinstance(c.machine, SimMachineConfig) and c.machine.noise > 0:
             return c.machine.noise
         prior = c.get_prior()
-        noise = getattr(prior, "noise", None)
+        noise = prior.noise if prior is not None else None
         return float(noise) if noise else None
 
 

@@ -6,7 +6,7 @@ error ensemble); this folder holds what makes it a machine kind: the ring as a
 :class:`~pigp_torch.prior.machine_model.MachineModel` (:mod:`.model`) and the plug-in
 :data:`KIND` that :data:`pigp_torch.machines.KINDS` lists as ``"spear3"``. Its run-file section is
 the loop's ``machine: {kind: sim}`` (:class:`~pigp_torch.loop.config.SimMachineConfig`), its
-benchmark the "spear3-13" protocol (:func:`pigp_torch.benchmark.run_benchmark`). This module
+benchmark the "spear3-13" protocol (:func:`pigp_torch.bench.run_benchmark`). This module
 imports nothing heavy (the registry imports it to find the kind).
 """
 
@@ -61,8 +61,8 @@ class RingKind(MachineKind):
         return build_machine(config)
 
     def benchmark(self, **options: Any):
-        """The "spear3-13" benchmark (:func:`pigp_torch.benchmark.run_benchmark`)."""
-        from pigp_torch.benchmark import run_benchmark
+        """The "spear3-13" benchmark (:func:`pigp_torch.bench.run_benchmark`)."""
+        from pigp_torch.bench import run_benchmark
 
         return run_benchmark(**options)
 
