@@ -34,6 +34,10 @@ signal* (the usual end of a shift):
 * ``"current"``: left where the last evaluation put them;
 * ``"initial"``: the knobs found at the start (of the first session, on a resume).
 
+When the knobs cannot be set to the estimate or the recent best (the machine refuses it through
+the restore window), the initial knobs are set back instead (a warning; ``restored_to``:
+``"initial (estimate not reached)"``).
+
 After any other end (a machine error, a refused setting, the objective floor, a full log disk,
 a bug) the initial knobs are set back, as in a one-shot run. A second signal while the end
 target is computed or reached abandons the restore (the knobs are left, and the end record says
