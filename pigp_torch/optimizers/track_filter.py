@@ -4,16 +4,19 @@ r"""A state-space fit of a model's unknowns that follows them in time.
 u`) of a differentiable model :math:`o = M(x, \theta) + v`, :math:`v \sim N(0, s^2 I)`, in
 information form. Each reading :math:`(x_t, o_t)` (time :math:`t`: the readings told)
 
-1. **predicts** by forgetting: the information about the unknowns decays towards the prior's,
-   :math:`H^- = \lambda (H - H_0) + H_0`, :math:`H_0 = I / \sigma_u^2` (a random walk of the
-   unknowns whose size is set by :math:`\lambda`; directions no reading determines keep the
-   prior's width, and :math:`\lambda = 1` keeps every reading: the batch fit);
-2. **scores** the prediction: innovation :math:`\nu = o_t - M(x_t, \theta(u))`, covariance
-   :math:`S = J (H^-)^{-1} J^\top + s^2 I` (:math:`J = \partial M / \partial u` at the reading),
-   score :math:`\sum_t \gamma^{n-t} \log N(\nu_t; 0, S_t)`;
-3. **updates** by a few Gauss–Newton steps (an iterated extended Kalman filter) on
-   :math:`(u - u^-)^\top H^- (u - u^-) + \|(o_t - M(x_t, \theta(u)))/s\|^2`, then
-   :math:`H = H^- + J^\top J / s^2`.
+1. **forgets**: the readings' information :math:`\Lambda` and linear term :math:`\eta` decay,
+   :math:`\Lambda^- = \lambda\Lambda`, :math:`\eta^- = \lambda\eta` (exponentially weighted least
+   squares: a reading of age :math:`a` counts :math:`\lambda^a`), while the prior
+   :math:`H_0 = I / \sigma_u^2` at the prior mean stays; the prediction is the posterior mean
+   :math:`u^- = (\Lambda^- + H_0)^{-1}\eta^-` (directions no recent reading determines return to
+   the prior instead of wandering; :math:`\lambda = 1` keeps every reading: the batch fit);
+2. **scores** the prediction: innovation :math:`\nu = o_t - M(x_t, \theta(u^-))`, covariance
+   :math:`S = J (\Lambda^- + H_0)^{-1} J^\top + s^2 I` (:math:`J = \partial M / \partial u` at the
+   reading), score :math:`\sum_t \gamma^{n-t} \log N(\nu_t; 0, S_t)`;
+3. **updates** by a few Gauss–Newton steps on the new reading (an iterated extended information
+   filter): linearized at :math:`u`, :math:`\Lambda = \Lambda^- + J^\top J / s^2`,
+   :math:`\eta = \eta^- + J^\top (o_t - M(x_t, \theta(u)) + J u) / s^2`,
+   :math:`u \leftarrow (\Lambda + H_0)^{-1} \eta`.
 
 One filter runs per forgetting factor of a small grid (default 1, 0.99, 0.95, 0.9); the estimate
 used is the filter's with the largest score: the forgetting rate is learned from the one-step-ahead
@@ -54,7 +57,8 @@ class UnknownsFilter:
         model: ``(N x d, P) -> N x m`` differentiable model.
         center, half_width: ``P`` each: :math:`\theta = c + h \odot u`.
         u0: ``P`` start estimate (normalized; e.g. the batch fit).
-        H: ``P x P`` its information (:func:`information`; default the prior's).
+        H: ``P x P`` its information, the prior's included (:func:`information`; default the
+            prior's: no reading yet).
         obs_sd: :math:`s` (observable units); prior_sd: :math:`\sigma_u` (normalized units).
         forgets: the grid of :math:`\lambda` (default :data:`FORGET_GRID`).
         discount: :math:`\gamma` of the score (default 0.97).
@@ -90,7 +94,8 @@ class UnknownsFilter:
         self.H0 = torch.eye(P, dtype=DTYPE) / self.prior_sd**2
         H = self.H0.clone() if H is None else torch.as_tensor(H, dtype=DTYPE)
         self.U = [u0.detach().clone() for _ in self.forgets]
-        self.H = [H.clone() for _ in self.forgets]
+        self.L = [H - self.H0 for _ in self.forgets]  # the readings' information
+        self.eta = [H @ u0.detach() for _ in self.forgets]
         self.scores = torch.zeros(len(self.forgets), dtype=DTYPE)
         self.discount, self.iters = float(discount), int(iters)
         self.chosen = 0
@@ -120,22 +125,22 @@ class UnknownsFilter:
         s2 = self.obs_sd**2
         chosen = self.chosen
         for g, lam in enumerate(self.forgets):
-            H_pred = lam * (self.H[g] - self.H0) + self.H0
-            u_pred = self.U[g]
-            pred, J = self._jacobian(x, u_pred)
+            L, eta = lam * self.L[g], lam * self.eta[g]
+            A = L + self.H0
+            u = torch.linalg.solve(A, eta)
+            pred, J = self._jacobian(x, u)
             nu = o - pred
-            S = J @ torch.linalg.solve(H_pred, J.T) + s2 * torch.eye(len(o), dtype=DTYPE)
+            S = J @ torch.linalg.solve(A, J.T) + s2 * torch.eye(len(o), dtype=DTYPE)
             _, logdet = torch.linalg.slogdet(2 * math.pi * S)
             loglik = -0.5 * (nu @ torch.linalg.solve(S, nu) + logdet)
             self.scores[g] = self.discount * self.scores[g] + loglik
             if g == chosen:
                 self.last_z = nu / torch.diagonal(S).sqrt()
-            u = u_pred
             for it in range(self.iters):
                 if it:
                     pred, J = self._jacobian(x, u)
-                A = H_pred + J.T @ J / s2
-                b = J.T @ (o - pred) / s2 - H_pred @ (u - u_pred)
-                u = u + torch.linalg.solve(A, b)
-            self.U[g], self.H[g] = u, A
+                L_new = L + J.T @ J / s2
+                eta_new = eta + J.T @ (o - pred + J @ u) / s2
+                u = torch.linalg.solve(L_new + self.H0, eta_new)
+            self.U[g], self.L[g], self.eta[g] = u, L_new, eta_new
         self.chosen = int(self.scores.argmax())
