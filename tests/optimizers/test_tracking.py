@@ -187,3 +187,16 @@ def test_the_tracking_optimizer_runs_on_the_ring_model():
         assert tracked[name][1] == unit
     for name, unit in zip(model.observable_names, model.observable_units, strict=True):
         assert tracked[f"{name}_offset"][1] == unit
+
+
+def test_ares_physics_is_the_tracking_model_and_keeps_the_hand_over_as_an_option():
+    from pigp_torch.machines import KINDS
+    from pigp_torch.methods import METHODS, RunContext
+
+    machine = KINDS["ares-ea"].simulator(trial=3, objective="mae")
+    ctx = RunContext(machine=machine, noise=None, maximize=False)
+    opt = METHODS["ares-physics"].build(ctx)
+    assert isinstance(opt, TrackingModelOptimizer) and opt.track
+    assert opt.offset_half_width == pytest.approx(50e-6)  # 50 x the 1 um noise floor
+    handed = METHODS["ares-physics"].with_options(fallback="nm").build(ctx)
+    assert not handed.track

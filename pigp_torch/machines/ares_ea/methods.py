@@ -205,8 +205,8 @@ def build_ares_physics(
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
     setting the fitted model's optimum for the machine's target inside a trust region; once the
     model stops explaining the readings (a drifting incoming beam, hysteresis, physics the model
-    lacks) its misfit is tracked as an offset of the observables and the optimum of the model
-    plus the offset is asked, until the model explains the readings again
+    lacks) the unknowns and an offset of the four beam numbers are tracked with forgetting and
+    the tracked model's optimum is asked around the current setting
     (:class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` of
     :func:`ares_machine_model`).
 
