@@ -23,6 +23,7 @@ SPEAR3 seeds 1-24 are held out and need ``--held-out`` (report runs, never tunin
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -47,9 +48,10 @@ def ares_run(args) -> dict:
     from pigp_torch.machines.ares_ea.benchmark import check_ares_methods
     from pigp_torch.machines.ares_ea.methods import ares_objective_for
 
-    trial, method, family, seed, readings, noise, window = args
+    trial, method, family, seed, readings, noise, window, options = args
     torch.set_num_threads(1)
     (spec,) = check_ares_methods([method])
+    spec = spec.with_options(**options) if options else spec
     machine = KINDS["ares-ea"].drift_machine(
         family=family, seed=seed, trial=trial, objective=ares_objective_for(method), noise=noise
     )
@@ -125,7 +127,8 @@ def _jobs(a) -> tuple[list, object]:
     if a.kind == "ares":
         trials = _ids(a.trials, ARES_HELD_OUT, a.held_out, "ARES trials")
         window = tuple(a.window or (150, 300))
-        return [(t, m, a.family, a.seed, a.readings, a.noise, window)
+        options = json.loads(a.options) if a.options else {}
+        return [(t, m, a.family, a.seed, a.readings, a.noise, window, options)
                 for m in a.methods for t in trials], ares_run  # fmt: skip
     seeds = _ids(a.seeds, RING_HELD_OUT, a.held_out, "SPEAR3 seeds")
     window = tuple(a.window or (100, 500))
@@ -163,6 +166,11 @@ def main(argv=None) -> int:
                         "model ring 0 + 40 ensemble rings) instead of computing it")  # fmt: skip
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--held-out", action="store_true")
+    p.add_argument(
+        "--options",
+        default=None,
+        help='ARES: the methods\' options as JSON, e.g. \'{"fallback": "track"}\'',
+    )
     p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
     a = p.parse_args(argv)
     ares = a.kind == "ares"
@@ -172,7 +180,7 @@ def main(argv=None) -> int:
         if a.family not in KINDS["ares-ea" if ares else "spear3"].drift_families():
             raise ValueError(f"unknown family {a.family!r}")
         jobs, fn = _jobs(a)
-    except (KeyError, ValueError, OSError) as err:
+    except (KeyError, ValueError, OSError) as err:  # json.JSONDecodeError is a ValueError
         print(f"error: {err}", file=sys.stderr)
         return 2
     runs = []
