@@ -45,7 +45,7 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
-from pigp_torch.optimizers.model_fit import FittedModelOptimizer
+from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
 
 __all__ = ["TrackingModelOptimizer"]
@@ -146,8 +146,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             return out + theta[..., P:] if n_off else out
 
         H = information(self.model, torch.stack(self.X), self.center, self.half_width, self.u,
-                        obs_sd=self.obs_sd, prior_sd=self.prior_sd)  # fmt: skip
-        H = torch.block_diag(H, torch.eye(n_off, dtype=DTYPE) / self.prior_sd**2)
+                        obs_sd=self.obs_sd, prior_sd=float(self.settings.prior_sd))  # fmt: skip
+        H = torch.block_diag(H, torch.eye(n_off, dtype=DTYPE) / float(self.settings.prior_sd) ** 2)
         zeros = torch.zeros(n_off, dtype=DTYPE)
         self.filter = UnknownsFilter(
             model,
@@ -156,7 +156,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             torch.cat([self.u, zeros]),
             H=H,
             obs_sd=self.obs_sd,
-            prior_sd=self.prior_sd,
+            prior_sd=float(self.settings.prior_sd),
             forgets=self.forgets,
         )
         self.tracking, self._failed = True, 0
@@ -184,7 +184,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         z = self.filter.last_z
         better = y > y_prev if self.maximize else y < y_prev
         _, lo, hi = self.track_trust
-        grow = better or bool((z.abs() <= self.agree_sd).all())
+        grow = better or bool((z.abs() <= AGREE_SD).all())
         self.trust = min(2 * trust, hi) if grow else max(trust / 2, lo)
         self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
         if self._cusum > self.cusum_h:
