@@ -11,7 +11,8 @@ A *machine kind* is one accelerator family with everything the package needs to 
 * ``section()``: the pydantic class of its run-file section (``machine: {kind: <run_file_kind>,
   ...}``), ``check_run(config, method)`` (the checks of a run file that need the simulation),
   ``simulated_machine(config)`` (the machine ``pigp optimize`` runs on) and
-  ``describe(section, machine)`` (that machine in words);
+  ``describe(section, machine)`` (that machine in words), ``methods_noise(section)`` and
+  ``stated_noise(section)`` (the reading noise its methods and the loop are told);
 * ``register_methods(register)``: the methods it adds to :data:`pigp_torch.methods.METHODS`
   (its :attr:`default_method` among them, or a generic one);
 * ``benchmark(**options)``: its benchmark task (a table, one row per method, trial and step).
@@ -82,6 +83,19 @@ class MachineKind:
     def simulated_machine(self, config: Any) -> Any:
         """The simulated machine of a run file whose section is the kind's."""
         raise NotImplementedError(f"machine kind {self.name!r} has no simulated machine")
+
+    def methods_noise(self, section: Any) -> float | None:
+        """The reading noise (the objective's unit) the kind's simulated machine tells the
+        method building the run's optimizer (:attr:`~pigp_torch.methods.RunContext.noise`;
+        ``None``: the method keeps its own default). Default: the section's ``noise`` when
+        above 0."""
+        return section.noise if section.noise > 0 else None
+
+    def stated_noise(self, section: Any) -> float | None:
+        """The reading noise (the objective's unit) the run states to the loop for its
+        re-read checks (:attr:`~pigp_torch.loop.RunOptions.noise`) when the run file gives no
+        ``objective_noise``. Default ``None`` (then the prior's noise, if any)."""
+        return None
 
     def describe(self, section: Any, machine: Any) -> str:
         """The simulated machine of a run file's section in words (the plan of ``pigp optimize

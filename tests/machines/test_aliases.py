@@ -1,9 +1,10 @@
-"""The public names that moved into the ARES-EA kind's folder still import from their old paths,
-as the same objects."""
+"""The public names that moved into a kind's folder (ARES-EA's, the ring's) still import from
+their old paths, as the same objects; the data files moved with them load from their new place."""
 
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import pytest
 
@@ -12,6 +13,14 @@ MOVED = {
     "pigp_torch.benchmark.ares": "pigp_torch.machines.ares_ea.benchmark",
     "pigp_torch.simulation.ares": "pigp_torch.machines.ares_ea.simulation",
     "pigp_torch.commands.bench_ares": "pigp_torch.machines.ares_ea.command",
+    "pigp_torch.simulation.ring": "pigp_torch.machines.ring.coupling",
+    **{
+        f"pigp_torch.simulation.{m}": f"pigp_torch.machines.ring.{m}"
+        for m in (
+            "calibration deck ensemble errors lattice linear_model lyapunov reference spear3 spec "
+            "throughput"
+        ).split()
+    },
 }
 
 
@@ -33,3 +42,45 @@ def test_the_names_outside_checks_call_are_there():
     assert METHODS["ares-physics"].machine == "ares-ea"
     assert callable(run_ares_benchmark) and callable(run_ares_trial) and callable(score_runs)
     assert RunContext().seed == 0
+
+
+def test_the_ring_package_path_re_exports_the_rings_entry_points():
+    """``pigp_torch.simulation.Spear3Coupling`` (DESIGN's public name) and the rest of the old
+    package's names are the ring kind's objects."""
+    import pigp_torch.simulation as old
+    from pigp_torch.machines.ring import calibration, coupling, lattice, spear3
+
+    assert old.Spear3Coupling is spear3.Spear3Coupling
+    assert old.RingCoupling is coupling.RingCoupling and old.load_ring is lattice.load_ring
+    assert old.calibrate_loss_rate_map is calibration.calibrate_loss_rate_map
+    assert set(old.__all__) == {
+        "LOSS_RATE_MAP", "SKEW_K_PER_A_M2", "TARGET_RATIO", "CouplingResult", "RingCoupling",
+        "Spear3Coupling", "calibrate_loss_rate_map", "load_ring",
+    }  # fmt: skip
+
+
+def test_every_module_of_the_old_simulation_package_is_an_alias():
+    """Nothing but aliases is left in ``pigp_torch/simulation`` (the ring's code is in its kind's
+    folder, ARES-EA's in its)."""
+    import pigp_torch.simulation as old
+
+    names = {p.stem for p in Path(old.__file__).parent.glob("*.py")} - {"__init__"}
+    assert {f"pigp_torch.simulation.{n}" for n in names} == {
+        m for m in MOVED if m.startswith("pigp_torch.simulation.")
+    }
+
+
+def test_the_kinds_data_files_load_from_their_folders():
+    """The SPEAR3 decks and the ARES-EA lattice and trials are package data of their kinds."""
+    from pigp_torch.machines.ares_ea.simulation import default_trials_path, load_lattice
+    from pigp_torch.machines.ring.deck import DECKS, deck_path, load_table
+
+    for optics in DECKS:
+        path = deck_path(optics)
+        assert path.parent.parts[-3:] == ("machines", "ring", "data") and path.is_file()
+    assert len(load_table("user")["elements"]) > 100
+    assert {"elements", "knobs", "observables"} <= set(load_lattice())
+    trials = default_trials_path()
+    assert trials.is_file() and trials.parent.name == "data"
+    assert trials.parent.parent.name == "ares_ea"
+    assert (trials.parent / "README.md").is_file() and (path.parent / "README.md").is_file()

@@ -60,7 +60,7 @@ def test_bad_arguments_raise(sim):
 
 def test_threaded_evaluate_equals_serial(sim):
     """evaluate() on 2 worker threads (its default when torch has 2 threads) = 1 worker."""
-    import pigp_torch.simulation.ring as spear3
+    import pigp_torch.machines.ring.coupling as spear3
 
     X = random_settings(sim, 40, seed=1)
     old = spear3.CHUNK
