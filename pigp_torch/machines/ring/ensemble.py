@@ -26,6 +26,8 @@ from pigp_torch._utils import DTYPE
 from pigp_torch._utils.multistart import find_optimum
 from pigp_torch.machines.ring.coupling import RingCoupling
 from pigp_torch.machines.ring.spear3 import Spear3Coupling
+from pigp_torch.prior.peak_shape import excess_derivatives, mean_shape
+from pigp_torch.prior.peak_shape import peak_shape_at as generic_peak_shape_at
 
 #: box growth factors of the optimum search (times the knob box), up to ``reach``
 GROWTH = (1.0, 2.0, 4.0, 8.0)
@@ -76,25 +78,16 @@ def peak_shape_at(sim: RingCoupling, x: torch.Tensor) -> torch.Tensor:
 
     At a peak of the loss rate :math:`f` of ``sim``, :math:`g` is a quadratic bowl
     :math:`c + (\mathbf x - \boldsymbol\mu)^\top B (\mathbf x - \boldsymbol\mu)` to second order;
-    this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units).
+    this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units):
+    :func:`pigp_torch.prior.peak_shape.peak_shape_at` of the loss rate and its background, the
+    code every machine model's shape goes through.
     """
-    H, _ = _g_derivatives(sim, x)
-    return H / 2
+    return generic_peak_shape_at(sim.loss_rate, float(sim.loss_background), x)
 
 
 def _g_derivatives(sim: RingCoupling, x: torch.Tensor):
     """Hessian and gradient of g = (f - f_inf)^-2 at ``x`` (autograd)."""
-    # Not prior.log_excess_hessian: that is log(f - f_inf), whose Hessian gives B only at an exact
-    # stationary point (-H c there); g's Hessian is B wherever g is quadratic.
-    f_inf = float(sim.loss_background)
-
-    def g(z: torch.Tensor) -> torch.Tensor:
-        return (sim.loss_rate(z.unsqueeze(0)).reshape(()) - f_inf) ** -2
-
-    x = torch.as_tensor(x, dtype=DTYPE).detach()
-    H = torch.autograd.functional.hessian(g, x)
-    G = torch.autograd.functional.jacobian(g, x)
-    return (H + H.T) / 2, G
+    return excess_derivatives(sim.loss_rate, float(sim.loss_background), x)
 
 
 def unconstrained_optimum(sim: RingCoupling, reach: float = 4.0):
@@ -261,19 +254,6 @@ def gather_optima(results) -> EnsembleOptima:
         torch.stack([B for _, _, B in used]),
         failed,
     )
-
-
-def mean_shape(shapes: torch.Tensor) -> torch.Tensor:
-    r""":math:`\bar B = \frac1n \sum_i B_i`: the mean of ``n x d x d`` peak shapes (symmetrized).
-
-    The shape is a property of the optics that the errors perturb; the mean over rings is a
-    better estimate for an unseen machine than any one ring's.
-    """
-    shapes = torch.as_tensor(shapes, dtype=DTYPE)
-    if shapes.ndim != 3 or shapes.shape[0] < 1 or shapes.shape[1] != shapes.shape[2]:
-        raise ValueError(f"shapes must be n x d x d with n >= 1, got {tuple(shapes.shape)}")
-    B = shapes.mean(0)
-    return (B + B.T) / 2
 
 
 def center_covariance(X: torch.Tensor) -> torch.Tensor:
