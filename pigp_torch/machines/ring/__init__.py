@@ -70,6 +70,16 @@ class RingKind(MachineKind):
 
         return build_ring_machine(config)
 
+    def true_objective(self, config, say):
+        """The simulated ring's noise-free loss rate (mA/min) and its noise; the report searches
+        its maximum with the ring's differentiable loss rate."""
+        from pigp_torch.machines.kind import TrueObjective
+
+        say(f"building the simulated ring (error seed {config.machine.error_seed}) ...")
+        machine = self.simulated_machine(config)
+        ring = machine.sim.sim  # the ring behind the run's bounds (.run.BoundedRing)
+        return TrueObjective(machine.true_value, float(config.machine.noise), ring.loss_rate)
+
     def methods_noise(self, section) -> None:
         """``None``: on the simulated ring the methods keep their own noise defaults (or the
         run file's ``method.options.noise``), as on a live ring."""
