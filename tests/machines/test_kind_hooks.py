@@ -8,7 +8,6 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-import yaml
 
 from pigp_torch import cli
 from pigp_torch.machines import KINDS, MachineKind
@@ -57,18 +56,11 @@ def test_pigp_bench_ares_comes_from_the_ares_kind(monkeypatch):
 
 @pytest.fixture(scope="module")
 def sim_log(tmp_path_factory):
-    """A 3-reading rcds run on the simulated ring (two knobs)."""
+    """A 3-reading rcds run on the simulated ring (two knobs; the report tests' run file)."""
+    from tests.test_report import write_run
+
     folder = tmp_path_factory.mktemp("run")
-    data = {
-        "machine": {"kind": "sim", "error_seed": 1, "noise": 0.04, "seed": 2},
-        "knobs": {"01G-QSS4": [-30, 30], "02G-QSS3": [-30, 30]},
-        "method": {"name": "rcds"},
-        "budget": 3,
-        "max_step": 0.2,
-        "log": "run.jsonl",
-    }
-    (folder / "run.yaml").write_text(yaml.safe_dump(data))
-    assert cli.main(["optimize", "--config", str(folder / "run.yaml"), "--quiet"]) == 0
+    assert cli.main(["optimize", "--config", write_run(folder, "rcds", 3), "--quiet"]) == 0
     return folder / "run.jsonl"
 
 
