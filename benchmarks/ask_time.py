@@ -28,7 +28,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 import pigp_torch._utils.lbfgsb as lbfgsb
-from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.bench.protocol import run_one
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.methods.registry import METHODS
 from pigp_torch.optimizers.physics_bo import relaxed_stages

@@ -22,7 +22,7 @@ import numpy as np
 CHILD = r"""
 import json, sys, time
 import torch
-from pigp_torch.benchmark.protocol import NOISE, benchmark_ring, run_seed
+from pigp_torch.bench.protocol import NOISE, benchmark_ring, run_seed
 from pigp_torch.methods import METHODS, RunContext
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation.spec import as_ring_spec

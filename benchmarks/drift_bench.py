@@ -71,7 +71,7 @@ def ares_run(args) -> dict:
 def spear3_run(args) -> dict:
     """One SPEAR3 run: ``(seed, method, family, readings, noise, window, prior)`` -> scores and
     the per-reading gain against the moving optimum."""
-    from pigp_torch.benchmark.protocol import run_seed
+    from pigp_torch.bench.protocol import run_seed
     from pigp_torch.machines.ring.drift import gain_series
 
     seed, method, family, readings, noise, window, prior = args
@@ -136,7 +136,7 @@ def _jobs(a) -> tuple[list, object]:
         prior = PhysicsPrior.load(a.prior)
         print(f"prior: {a.prior}", flush=True)
     elif any(METHODS[m].needs_prior for m in a.methods):
-        from pigp_torch.benchmark.protocol import model_prior
+        from pigp_torch.bench.protocol import model_prior
 
         print(f"prior: model ring 0, {a.center_ensemble} ensemble rings", flush=True)
         prior = model_prior(0, noise=a.noise, center_ensemble=a.center_ensemble)

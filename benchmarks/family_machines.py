@@ -3,7 +3,7 @@
 Per machine seed: the tune offsets from the user deck (``dnu_x``, ``dnu_y``; pyAT tunes of the
 machine's ideal lattice minus the deck's), the global error scale, the skews-off coupling
 ``eps_ratio0`` = εy/εx, the background ``f_inf``, the loss rate with the skews off ``f0`` and the
-machine's optimum ``f_star`` in the knob box (:func:`~pigp_torch.benchmark.machines
+machine's optimum ``f_star`` in the knob box (:func:`~pigp_torch.bench.machines
 .machine_optimum`, 8 starts), all rates in mA/min; for the wide family also the drawn peak
 ``f_star_drawn``; with ``--n95`` the oracle bound of ``benchmarks/information_bound.py --csv``
 (matched by family and seed). Writes a CSV whose first line is a comment with the command.
@@ -24,8 +24,8 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.benchmark.families import FAMILIES, wide_draw
-from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
+from pigp_torch.bench.families import FAMILIES, wide_draw
+from pigp_torch.bench.machines import benchmark_ring, machine_optimum
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.simulation.deck import spear3_ring
 from pigp_torch.simulation.spec import SPEAR3

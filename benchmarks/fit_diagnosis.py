@@ -5,7 +5,7 @@ script
 
 1. measures how far the machine is from the physics form around its own peak: along
    ``--directions`` random directions :math:`\mathbf v` of unit length in the metric of the
-   machine's own shape :math:`B_s` (:func:`~pigp_torch.benchmark.oracle.machine_peak`), the
+   machine's own shape :math:`B_s` (:func:`~pigp_torch.bench.oracle.machine_peak`), the
    ratio :math:`(g(\boldsymbol\mu + \sqrt q\,\mathbf v) - c)/q` with :math:`g = (f -
    f_\infty)^{-2}` (exactly 1 for the form, :func:`quadratic_departure`);
 2. runs ``pigp-physics`` (``--oracle``: told the machine's own shape, height and background;
@@ -34,10 +34,10 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils.lbfgsb import minimize_lbfgsb
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
-from pigp_torch.benchmark.oracle import machine_peak, oracle_prior
-from pigp_torch.benchmark.protocol import NOISE
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.machines import benchmark_ring, machine_optimum
+from pigp_torch.bench.oracle import machine_peak, oracle_prior
+from pigp_torch.bench.protocol import NOISE
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import RunContext

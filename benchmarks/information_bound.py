@@ -8,7 +8,7 @@ script estimates that number for each machine with everything in the optimizer's
 
 * the machine's own physics form is known exactly (its unconstrained optimum
   :math:`\boldsymbol\mu`, its shape :math:`B` there and :math:`c = (f(\boldsymbol\mu) -
-  f_\infty)^{-2}`, from :func:`~pigp_torch.benchmark.oracle.machine_peak`), so the only
+  f_\infty)^{-2}`, from :func:`~pigp_torch.bench.oracle.machine_peak`), so the only
   error is the noise;
 * the parameters :math:`\theta = (\boldsymbol\mu, \log c, \log\beta)` carry the same priors as in
   ``pigp-physics`` (the ensemble's centre covariance), and the Laplace covariance
@@ -34,7 +34,7 @@ reach 95 % within 40 evaluations by any method that must find its optimum from r
 
 The machines are the benchmark's (each with its own loss-rate map unless ``--model-maps``), of
 the family ``--family`` (``project``, default, or ``wide``:
-:mod:`~pigp_torch.benchmark.families`); the oracle also knows the machine's own background.
+:mod:`~pigp_torch.bench.families`); the oracle also knows the machine's own background.
 Results: ``docs/results.md``.
 
 Usage::
@@ -52,10 +52,10 @@ import math
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.benchmark import model_prior
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.oracle import machine_peak
-from pigp_torch.benchmark.protocol import benchmark_ring, machine_optimum
+from pigp_torch.bench import model_prior
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.oracle import machine_peak
+from pigp_torch.bench.protocol import benchmark_ring, machine_optimum
 from pigp_torch.models import InverseSqrtPeakModel
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation.ring import RingCoupling

@@ -1,7 +1,7 @@
 r"""PI-GP vs ML-II with all 72 skew windings as knobs.
 
 Does the physics prior's advantage grow with dimension? The "spear3-13" protocol
-(:mod:`pigp_torch.benchmark.protocol`) at ``knobs="all72"``: machines ``Spear3Coupling(s,
+(:mod:`pigp_torch.bench.protocol`) at ``knobs="all72"``: machines ``Spear3Coupling(s,
 knobs="all72")`` for the machine seeds, the prior from the model ring (``model_seed``, same 72
 knobs), both methods with their registry defaults (UCB β = 4, trust box ±0.3 of the normalized
 range, ML-II on a 300-reading archive, refitted every step), every run from skews off with
@@ -9,7 +9,7 @@ range, ML-II on a 300-reading archive, refitted every step), every run from skew
 
 Two things differ from 13 knobs (see ``check``), and the study makes them explicit:
 
-* The protocol's prior (:func:`~pigp_torch.benchmark.model_prior`, 16 Sobol starts searched as
+* The protocol's prior (:func:`~pigp_torch.bench.model_prior`, 16 Sobol starts searched as
   one L-BFGS-B problem) can fail at 72 knobs: for model seed 0 its x0 has a LOWER loss rate than
   skews off. ``--priors sobol zero`` runs PI-GP with that prior (``pigp``) and with the prior
   expanded at the optimum found from skews off (``pigp-x0zero``; same run seed as ``pigp``, so
@@ -37,7 +37,7 @@ Usage::
     # the table again from the CSVs
     python benchmarks/knobs72.py table --knobs all72 paper13 --budget 60 --out /work/notes/knobs72
 
-Runs are seeded per (method, machine seed) (the protocol's :func:`~pigp_torch.benchmark.run_one`),
+Runs are seeded per (method, machine seed) (the protocol's :func:`~pigp_torch.bench.run_one`),
 so a resumed or parallel (``--workers``) study gives the same numbers as an uninterrupted serial
 one; a run's first n evaluations do not depend on its budget (BayesOpt seeds ask k with
 ``seed + k``), so the gain after n < budget is that of a run with budget n.
@@ -55,7 +55,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pigp_torch.benchmark import METHODS, NOISE, machine_optimum, model_prior, run_one, summarize
+from pigp_torch.bench import METHODS, NOISE, machine_optimum, model_prior, run_one, summarize
 from pigp_torch.prior import PhysicsPrior, find_optimum, prior_from_model
 from pigp_torch.simulation import Spear3Coupling
 
@@ -85,7 +85,7 @@ def prior_path(out: Path, knobs: str, model_seed: int, start: str) -> Path:
 def prior_for(knobs: str, model_seed: int, out: Path, start: str) -> PhysicsPrior:
     """The model ring's prior, cached as JSON in ``out`` (plain data).
 
-    ``start="sobol"``: the protocol's :func:`~pigp_torch.benchmark.model_prior` (16 Sobol
+    ``start="sobol"``: the protocol's :func:`~pigp_torch.bench.model_prior` (16 Sobol
     starts). ``"zero"``: x0 = the maximum found by L-BFGS-B from skews off (one start).
     """
     path = prior_path(out, knobs, model_seed, start)

@@ -1,6 +1,6 @@
 """The mismatch suite: pigp-physics given priors of a model the machines are not.
 
-For each case of :mod:`pigp_torch.benchmark.mismatch` (a re-tuned model ring, the design deck,
+For each case of :mod:`pigp_torch.bench.mismatch` (a re-tuned model ring, the design deck,
 a scaled or rotated shape, a shifted centre prior, a wrong calibration, machines with a
 loss-rate map further off than the benchmark's spread) this runs ``pigp-physics`` (and any
 variants given) on the spear3-13 machines, and the baselines (``--baselines``, default ``ml2``
@@ -28,11 +28,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import pandas as pd
 from screen_physics import parse_variant  # the sibling script (benchmarks/ is on sys.path)
 
-from pigp_torch.benchmark import METHODS, run_benchmark
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.mismatch import cases
-from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
-from pigp_torch.benchmark.scoring import first_moves, run_scores
+from pigp_torch.bench import METHODS, run_benchmark
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.mismatch import cases
+from pigp_torch.bench.protocol import ENSEMBLE_SIZE, model_prior
+from pigp_torch.bench.scoring import first_moves, run_scores
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation import Spear3Coupling

@@ -23,7 +23,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.scoring import first_moves, run_scores
+from pigp_torch.bench.scoring import first_moves, run_scores
 
 BASELINES = ("ml2", "xopt-ucb")
 

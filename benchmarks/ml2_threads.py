@@ -32,8 +32,8 @@ def main() -> None:
         torch.set_num_threads(a.threads)
     elif a.what == "refit":
         torch.set_num_threads(1)
-    from pigp_torch.benchmark import METHODS, run_one, summarize
-    from pigp_torch.benchmark.protocol import model_prior
+    from pigp_torch.bench import METHODS, run_one, summarize
+    from pigp_torch.bench.protocol import model_prior
     from pigp_torch.commands.compare import seed_list
 
     prior = model_prior(0, n_starts=2)

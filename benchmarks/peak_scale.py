@@ -4,7 +4,7 @@ r"""How far each machine's peak is from what the prior of ``pigp-physics`` expec
 (\mathbf x - \boldsymbol\mu))^{-1/2}` with the shape :math:`B` of the prior (the ensemble's mean
 peak shape), a prior on :math:`\log\beta` around 0 (std 0.3 in the given model) and one on
 :math:`\log c` around the model ring's :math:`\log c_m` (std 1.5), and the prior's background.
-For each machine this script takes its own peak (:func:`~pigp_torch.benchmark.oracle
+For each machine this script takes its own peak (:func:`~pigp_torch.bench.oracle
 .machine_peak`: centre :math:`\boldsymbol\mu`, shape :math:`B_s` normalized to
 :math:`\beta = 1`, :math:`c_s = (f(\boldsymbol\mu) - f_\infty)^{-2}`) and prints
 
@@ -33,9 +33,9 @@ import pandas as pd
 import scipy.linalg
 import torch
 
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.machines import benchmark_ring
-from pigp_torch.benchmark.oracle import machine_peak
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.machines import benchmark_ring
+from pigp_torch.bench.oracle import machine_peak
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
 from pigp_torch.simulation.spec import SPEAR3

@@ -18,7 +18,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.scoring import first_moves, run_scores
+from pigp_torch.bench.scoring import first_moves, run_scores
 
 
 def scores_of(df: pd.DataFrame) -> pd.DataFrame:

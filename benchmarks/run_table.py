@@ -11,10 +11,10 @@ knobs, budgets 100 / 300 evaluations).
     python benchmarks/run_table.py --prior runs/prior_surrogate.json --seeds 1-24 \\
         --methods xopt-ucb xopt-ucb-travel --workers 1 -o runs/table_xopt.csv
 
-``pigp-physics-oracle`` (:data:`pigp_torch.benchmark.oracle.ORACLE`, each machine's own shape,
+``pigp-physics-oracle`` (:data:`pigp_torch.bench.oracle.ORACLE`, each machine's own shape,
 background and peak) is accepted as a reference; ``--suffix=-exact`` labels a run with another
 prior file. ``--family wide`` runs the wide family of machines
-(:mod:`~pigp_torch.benchmark.families`; the table's ``family`` column says which).
+(:mod:`~pigp_torch.bench.families`; the table's ``family`` column says which).
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from pigp_torch.benchmark import METHODS, run_benchmark, summarize
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.oracle import ORACLE
+from pigp_torch.bench import METHODS, run_benchmark, summarize
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.oracle import ORACLE
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
 

@@ -1,13 +1,13 @@
 """The benchmark table from run CSVs, with each method's steps against the oracle bound.
 
-Joins one or more CSVs of :func:`~pigp_torch.benchmark.run_benchmark` (e.g. from
+Joins one or more CSVs of :func:`~pigp_torch.bench.run_benchmark` (e.g. from
 ``benchmarks/run_table.py``, one per group of methods, all with the same prior) and, when given,
 the per-machine oracle bound of ``benchmarks/information_bound.py --csv``. Prints per method:
 machines at 95 %, median (IQR) steps to 95 % (an unreached run counts budget + 1), median (IQR)
 ratio steps-to-95 / n95, steps within max(5 %, σn), gains after 20 / 40 / 100, compute per ask
 (median / p90, ms); then per machine the steps of each method and n95; then the paper's claims.
 Runs on machines of another family than ``project`` (the tables' ``family`` column,
-:mod:`~pigp_torch.benchmark.families`) are labelled ``method [family]``, so one table reports
+:mod:`~pigp_torch.bench.families`) are labelled ``method [family]``, so one table reports
 both families; the n95 CSV is matched by family and machine seed.
 
     python benchmarks/table_summary.py runs/table_main.csv runs/table_xopt.csv --n95 runs/n95.csv
@@ -19,7 +19,7 @@ import argparse
 
 import pandas as pd
 
-from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.bench.scoring import run_scores
 
 
 def iqr(v: pd.Series, fmt: str = "{:.2f}") -> str:

@@ -7,7 +7,8 @@ model of a storage ring; the real SPEAR3 shipped) -> ``data`` (datasets drawn fr
 ``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). The machine kinds
 (``machines``: the registry ``KINDS``, one folder a kind: the ring, ARES-EA) sit on the chain and
 use it. Around it: ``cli``
-and ``commands``, ``integrations`` (Xopt, Badger), ``benchmark``, ``reporting``, ``testing``;
+and ``commands``, ``integrations`` (Xopt, Badger), ``benchmark``, ``reporting``,
+``simulated_epics``;
 ``_utils`` holds the plumbing every stage shares.
 
 Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a

@@ -11,13 +11,15 @@ layer  units
 =====  =========================================================================================
 12     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
 11     ``commands`` (one module per ``pigp`` command; the ring options), ``badger_plugins``
-       (Badger's entry point)
+       (Badger's entry point), ``benchmark`` (the old path of ``bench``: aliases only)
 10     every machine kind: ``machines.<kind>`` (one folder each: ``machines.ares_ea``,
        ``machines.ring``); a kind imports the core, never another kind
-9      ``benchmark`` (the protocol and the demo), ``reporting`` (run reports and the dashboard),
-       ``machines.contract`` (the contract tests every machine kind inherits)
-8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress)
-7      ``testing`` (the simulated ring as EPICS servers)
+9      ``bench`` (the library of ``pigp bench``: the protocol and the demo), ``reporting`` (run
+       reports and the dashboard), ``machines.contract`` (the contract tests every machine kind
+       inherits)
+8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress),
+       ``testing`` (the old path of ``simulated_epics``: aliases only)
+7      ``simulated_epics`` (the simulated ring as EPICS servers)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)
@@ -49,10 +51,10 @@ ROOT = "<root>"
 
 LAYERS: dict[str, int] = {
     **dict.fromkeys(("cli", ROOT), 12),
-    **dict.fromkeys(("commands", "badger_plugins"), 11),
-    **dict.fromkeys(("benchmark", "reporting", "machines.contract"), 9),
-    "loop": 8,
-    "testing": 7,
+    **dict.fromkeys(("commands", "badger_plugins", "benchmark"), 11),
+    **dict.fromkeys(("bench", "reporting", "machines.contract"), 9),
+    **dict.fromkeys(("loop", "testing"), 8),
+    "simulated_epics": 7,
     **dict.fromkeys(("methods", "machine"), 6),
     "integrations": 5,
     "optimizers": 4,
@@ -86,17 +88,17 @@ ALIASES = frozenset(
 #: import a kind fails the tests, and one that stops must leave the list.
 RING_USERS = frozenset(
     {
-        "pigp_torch.benchmark.demo",
-        "pigp_torch.benchmark.families",
-        "pigp_torch.benchmark.machines",
-        "pigp_torch.benchmark.mismatch",
-        "pigp_torch.benchmark.oracle",
-        "pigp_torch.benchmark.protocol",
-        "pigp_torch.benchmark.scoring",
+        "pigp_torch.bench.demo",
+        "pigp_torch.bench.families",
+        "pigp_torch.bench.machines",
+        "pigp_torch.bench.mismatch",
+        "pigp_torch.bench.oracle",
+        "pigp_torch.bench.protocol",
+        "pigp_torch.bench.scoring",
         "pigp_torch.loop.config.machines",
-        "pigp_torch.testing.ioc",
-        "pigp_torch.testing.ioc_process",
-        "pigp_torch.testing.pva",
+        "pigp_torch.simulated_epics.ioc",
+        "pigp_torch.simulated_epics.ioc_process",
+        "pigp_torch.simulated_epics.pva",
     }
 )
 
@@ -255,9 +257,10 @@ def test_an_import_of_an_alias_counts_as_an_import_of_the_kind():
     """The old paths of the ring's simulation lead into the ring's folder (so the checks above
     see a module of the core that imports ``pigp_torch.simulation`` as importing the kind)."""
     graph = _resolved_graph()
-    assert "pigp_torch.machines.ring.spec" in graph["pigp_torch.testing.ioc"]
-    assert not any(t.startswith("pigp_torch.simulation") for t in graph["pigp_torch.testing.ioc"])
-    assert all(_unit(t) == "machines.ring" for t in graph["pigp_torch.benchmark.scoring"]
+    ioc = graph["pigp_torch.simulated_epics.ioc"]
+    assert "pigp_torch.machines.ring.spec" in ioc
+    assert not any(t.startswith("pigp_torch.simulation") for t in ioc)
+    assert all(_unit(t) == "machines.ring" for t in graph["pigp_torch.bench.scoring"]
                if t.startswith("pigp_torch.machines."))  # fmt: skip
 
 
@@ -343,8 +346,8 @@ SHORT_FUNCTIONS = (
     "pigp_torch.loop",
     "pigp_torch.prior",
     "pigp_torch.surrogate",
-    "pigp_torch.benchmark.protocol",
-    "pigp_torch.benchmark.distributed",
+    "pigp_torch.bench.protocol",
+    "pigp_torch.bench.distributed",
 )
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 80
@@ -385,7 +388,7 @@ def test_the_length_checks_see_a_long_function():
     assert _long_functions("m", "def g():\n    return 1\n") == []
     held = {m for m in _modules() if m.startswith(SHORT_FUNCTIONS)}
     assert {"pigp_torch.loop.core", "pigp_torch.prior.build", "pigp_torch.surrogate.train"} <= held
-    assert "pigp_torch.benchmark.protocol" in held
+    assert "pigp_torch.bench.protocol" in held
 
 
 def test_a_kinds_modules_are_one_unit_above_the_core():
@@ -394,5 +397,5 @@ def test_a_kinds_modules_are_one_unit_above_the_core():
     assert _unit("pigp_torch.machines.ares_ea.benchmark") == "machines.ares_ea"
     assert _unit("pigp_torch.machines.ring") == "machines.ring"
     assert _unit("pigp_torch.machines.kind") == _unit("pigp_torch.machines") == "machines"
-    assert _layer("machines.ring") == KIND_LAYER > _layer("benchmark") > _layer("loop")
+    assert _layer("machines.ring") == KIND_LAYER > _layer("bench") > _layer("loop")
     assert _layer("methods") > _layer("machines") and _layer("commands") > KIND_LAYER

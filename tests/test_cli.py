@@ -172,7 +172,7 @@ def test_the_ensemble_cache_stores_what_it_was_given(tmp_path):
     """with_cached_ensemble: computed once, then read back bit for bit (keyed by seed, size)."""
     import dataclasses
 
-    from pigp_torch.benchmark.demo_cache import DemoCache, with_cached_ensemble
+    from pigp_torch.bench.demo_cache import DemoCache, with_cached_ensemble
 
     d = 3
     prior = PhysicsPrior(

@@ -7,7 +7,7 @@ import io
 
 import torch
 
-from pigp_torch.benchmark import METHODS, run_one
+from pigp_torch.bench import METHODS, run_one
 from pigp_torch.loop.progress import ProgressLine, reporting_spec
 from pigp_torch.prior import PhysicsPrior
 

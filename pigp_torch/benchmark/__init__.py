@@ -1,36 +1,12 @@
-"""The "spear3-13" benchmark: methods x simulated machines, noise-free scores, summary, figures."""
+"""Alias: the library behind ``pigp bench`` (the spear3-13 protocol, scoring, figures, the demo)
+moved to :mod:`pigp_torch.bench`, beside which the top-level ``benchmarks/`` scripts no longer
+share a name; ``pigp_torch.benchmark``, each of its modules (as the moved module itself) and
+``pigp_torch.benchmark.ares`` (the ARES-EA benchmark, in its kind's folder) still import."""
 
-from pigp_torch.benchmark.archive import machine_archive
-from pigp_torch.benchmark.figures import plot_prior_mean, plot_runs
-from pigp_torch.benchmark.protocol import (
-    NOISE,
-    machine_optimum,
-    model_prior,
-    run_benchmark,
-    run_one,
-    run_seed,
-    score_run,
-)
-from pigp_torch.benchmark.scoring import first_moves, run_scores, summarize
-from pigp_torch.methods import BO_DEFAULTS, DEFAULT_BUDGETS, METHODS, MethodSpec, RunContext
+from pigp_torch import bench as _moved
+from pigp_torch._utils.aliases import alias_package
 
-__all__ = [
-    "BO_DEFAULTS",
-    "DEFAULT_BUDGETS",
-    "METHODS",
-    "NOISE",
-    "MethodSpec",
-    "RunContext",
-    "first_moves",
-    "machine_archive",
-    "machine_optimum",
-    "model_prior",
-    "plot_prior_mean",
-    "plot_runs",
-    "run_benchmark",
-    "run_one",
-    "run_scores",
-    "run_seed",
-    "score_run",
-    "summarize",
-]
+alias_package(__name__, _moved.__name__)
+
+__all__ = list(_moved.__all__)
+globals().update({name: getattr(_moved, name) for name in __all__})

@@ -21,7 +21,7 @@ def _int_list(text: str) -> list[int]:
 def cmd_bench_bo(args) -> int:
     import torch
 
-    from pigp_torch.benchmark.bo_speed import DEFAULT_DIMS, DEFAULT_NS, bo_step_times, format_table
+    from pigp_torch.bench.bo_speed import DEFAULT_DIMS, DEFAULT_NS, bo_step_times, format_table
 
     torch.set_num_threads(args.threads)
     result = bo_step_times(

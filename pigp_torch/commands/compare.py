@@ -24,7 +24,7 @@ def format_summary(summary, fraction: int = 95) -> str:
     interquartile range of the steps; every column of ``summary.csv`` is in the file).
 
     Args:
-        summary: :func:`~pigp_torch.benchmark.summarize`'s table (indexed by method).
+        summary: :func:`~pigp_torch.bench.summarize`'s table (indexed by method).
         fraction: the gain fraction of its ``steps_to_<fraction>`` column.
     """
     import math
@@ -70,7 +70,7 @@ def format_summary(summary, fraction: int = 95) -> str:
 def write_comparison(df, out: Path, title: str, knob_units: dict[str, str]) -> None:
     """``runs.csv`` and ``summary.csv`` (headers with units, ``name [unit]``; ``knob_units``:
     knob name -> unit), the figures and the printed summary of a benchmark table ``df``."""
-    from pigp_torch.benchmark import plot_prior_mean, plot_runs, summarize
+    from pigp_torch.bench import plot_prior_mean, plot_runs, summarize
     from pigp_torch.data.tables import with_units
 
     out.mkdir(parents=True, exist_ok=True)
@@ -87,7 +87,7 @@ def write_comparison(df, out: Path, title: str, knob_units: dict[str, str]) -> N
 
 
 def cmd_compare(args) -> int:
-    from pigp_torch.benchmark import run_benchmark
+    from pigp_torch.bench import run_benchmark
     from pigp_torch.commands.ring_options import ring_spec_from_args
     from pigp_torch.simulation.ensemble import check_ensemble_size
     from pigp_torch.simulation.spec import knob_count

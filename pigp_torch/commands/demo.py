@@ -1,5 +1,5 @@
 """``pigp demo``: the main job end to end on the embedded simulated ring
-(:mod:`pigp_torch.benchmark.demo`)."""
+(:mod:`pigp_torch.bench.demo`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pigp_torch.commands.train_surrogate import train_default
 
 def cmd_demo(args) -> int:
     from pigp_torch._utils.pool import default_workers
-    from pigp_torch.benchmark.demo import DemoSettings, run_demo
+    from pigp_torch.bench.demo import DemoSettings, run_demo
     from pigp_torch.commands.compare import write_comparison
 
     settings = DemoSettings(

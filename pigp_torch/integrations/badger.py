@@ -312,7 +312,7 @@ def add_setup_arguments(p) -> None:
 
 
 #: How to serve the simulated ring for the ``pigp_sim`` environment (the port is ``pigp
-#: serve-sim``'s default, :data:`pigp_torch.testing.SIM_CA_PORT`: not CA's standard 5064).
+#: serve-sim``'s default, :data:`pigp_torch.simulated_epics.SIM_CA_PORT`: not CA's standard 5064).
 SERVE_HINT = (
     "serve the ring with `pigp serve-sim &` (Channel Access on 127.0.0.1:5164, its default port) "
     "and give the environment ca_port 5164"

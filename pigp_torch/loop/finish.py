@@ -176,7 +176,7 @@ def _knobs_against_target(run: Run, out: Ending) -> dict:
 def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     """The end record (a failure to write it is raised only when nothing else failed, and
     warned of only when no earlier write failed: that failure is reported already)."""
-    known = getattr(run.log, "write_error", None)
+    known = run.log.write_error if run.log is not None else None
     try:
         end = {"restored_to": out.restored_to, "final_knobs": out.final_knobs}
         end.update(n_evaluations=len(rows), best=out.best)

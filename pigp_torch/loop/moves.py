@@ -26,11 +26,7 @@ WINDOW_PAUSE_S = 0.2
 
 def effective_max_step(machine, bounds: torch.Tensor, max_step) -> torch.Tensor | None:
     """Elementwise minimum of the machine's and the loop's step limits (absolute, ``d``)."""
-    limits = [
-        max_step_tensor(m, bounds)
-        for m in (getattr(machine, "max_step", None), max_step)
-        if m is not None
-    ]
+    limits = [max_step_tensor(m, bounds) for m in (machine.max_step, max_step) if m is not None]
     if not limits:
         return None
     out = limits[0]
@@ -98,9 +94,9 @@ def verify_readback(
         MachineError: naming the knobs, their setpoints or readbacks, and the target.
     """
     width = bounds[1] - bounds[0]
-    setpoints = getattr(machine, "setpoints", None)
-    if callable(setpoints):
-        sp = torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1)
+    setpoints = machine.setpoints()
+    if setpoints is not None:
+        sp = torch.as_tensor(setpoints, dtype=DTYPE).reshape(-1)
         bad = ((sp - target).abs() > SETPOINT_TOL * width).nonzero().flatten().tolist()
         if bad:
             raise MachineError(
@@ -141,10 +137,10 @@ def machine_state(machine) -> dict:
     """What a reading is checked against: readbacks, setpoints and the disconnection count
     (the latter two only where the machine offers them)."""
     state = {"readback": torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1)}
-    setpoints = getattr(machine, "setpoints", None)
-    if callable(setpoints):
-        state["setpoint"] = torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1)
-    if hasattr(machine, "disconnections"):
+    setpoints = machine.setpoints()
+    if setpoints is not None:
+        state["setpoint"] = torch.as_tensor(setpoints, dtype=DTYPE).reshape(-1)
+    if machine.disconnections is not None:
         state["disconnections"] = int(machine.disconnections)
     return state
 
@@ -227,7 +223,7 @@ def checked_read(
 def averaged_parts(machine) -> list | None:
     """The single readings a machine averaged into its last reading (``last_reading["values"]``
     where it reports them, as ``EpicsMachine`` does), else ``None``."""
-    info = getattr(machine, "last_reading", None)
+    info = machine.last_reading
     return info.get("values") if isinstance(info, dict) else None
 
 
@@ -236,7 +232,7 @@ def _ramp_each(machine, target, bounds, limit, on_set, on_ack, readback_errors) 
     machine holds them), so that a knob the machine refuses does not stop the others; returns
     one line per knob that failed (named where the machine names its knobs). Setpoints that
     cannot be read stop it (raised: no knob can be moved then)."""
-    names = list(getattr(machine, "knob_names", None) or [])
+    names = list(machine.knob_names or [])
     width = bounds[1] - bounds[0]
     failures = []
     for i in range(target.numel()):

@@ -63,7 +63,7 @@ def logged_noise(resume) -> dict | None:
     """The noise a logged run measured (its first start record whose ``noise`` was measured):
     ``{"sigma", "source": "logged", "line"}``, ``None`` when it measured none (its noise was
     stated, or the log predates the measurement)."""
-    for start in getattr(resume, "starts", None) or ():
+    for start in resume.starts:
         noise = start.get("noise")
         if isinstance(noise, dict) and noise.get("source") == "measured":
             sigma = float(noise["sigma"])

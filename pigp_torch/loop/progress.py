@@ -1,7 +1,7 @@
 r"""One progress line per evaluation: step N of M, reading, best so far, largest knob move, time.
 
 :class:`ProgressLine` formats the line from the rows :func:`pigp_torch.optimize` hands to its
-``callback``; :func:`reporting_spec` wraps a benchmark :class:`~pigp_torch.benchmark.MethodSpec`
+``callback``; :func:`reporting_spec` wraps a benchmark :class:`~pigp_torch.bench.MethodSpec`
 so that every ``tell`` of its optimizer prints the same line (how ``pigp demo`` shows its runs
 without touching the benchmark's loop). A line looks like::
 
@@ -163,7 +163,7 @@ class _ReportingBuilder:
         line = ProgressLine(
             self.budget,
             self.knob_names,
-            maximize=getattr(optimizer, "maximize", True),
+            maximize=optimizer.maximize,
             unit=self.unit,
             objective_unit=self.objective_unit,
             label=f"{self.name:>14}",

@@ -241,7 +241,7 @@ def _failed_read(err, problems: list, alarms: list, on_discard) -> int:
     its alarm severity is reported to ``on_discard`` with its value."""
     problems.append(f"{type(err).__name__}: {err}")
     alarms.append(err)
-    value = getattr(err, "value", None) if isinstance(err, SeverityError) else None
+    value = err.value if isinstance(err, SeverityError) else None
     if value is not None and math.isfinite(value):
         on_discard(str(err), float(value))
     return 1

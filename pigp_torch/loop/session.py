@@ -26,8 +26,15 @@ from pigp_torch.loop.moves import (
 from pigp_torch.loop.noise import logged_noise, measure_noise
 from pigp_torch.loop.options import RunOptions
 from pigp_torch.loop.readings import ReadingJudge
-from pigp_torch.loop.steps import knob_columns, logged_initial_knobs, observables_of, run_steps
-from pigp_torch.machine.base import Machine, check_setting
+from pigp_torch.loop.steps import (
+    StepContext,
+    knob_columns,
+    logged_initial_knobs,
+    observables_of,
+    run_steps,
+)
+from pigp_torch.machine.base import check_setting, is_machine_objective
+from pigp_torch.optimizers.base import AskTellOptimizer
 
 
 @dataclasses.dataclass(eq=False)
@@ -70,7 +77,7 @@ class Run:
         """Before part ``k`` of ``n`` of a move is written: its intent record, then remember it."""
         sent = self.sent
         if self.log is not None:
-            known = getattr(self.log, "write_error", None)  # a failed write already reported
+            known = self.log.write_error  # a failed write already reported
             try:
                 self.log.log_intent(x, purpose=sent["purpose"], step=sent["step"], part=k, parts=n)
             except Exception as err:
@@ -86,7 +93,7 @@ class Run:
 
     def last_acknowledged(self):
         """The setpoints the machine last confirmed (its own account where it keeps one)."""
-        acked = getattr(self.objective, "last_acknowledged", None)
+        acked = self.objective.last_acknowledged if self.is_machine else None
         return acked.tolist() if isinstance(acked, torch.Tensor) else self.sent["acked"]
 
     def on_discard_at(self, step):
@@ -171,14 +178,14 @@ def _logged_evaluations(resume, x0, budget: int) -> list[dict]:
 def _start_point(optimizer, x0, resume, logged, x_initial, is_machine: bool):
     """``(x0, d)``: the checked start point (``None`` on a resume) and the number of knobs."""
     if resume is not None:
-        return x0, getattr(optimizer, "dim", None) or len(logged[0]["x"])
+        return x0, optimizer.dim
     if x0 is None:
         if not is_machine:
             raise ValueError("x0 is required when the objective is a plain callable")
         x0 = x_initial
     if not isinstance(x0, torch.Tensor):  # lists/arrays straight to float64, not via float32
         x0 = torch.as_tensor(x0, dtype=DTYPE)
-    d = getattr(optimizer, "dim", None) or x0.numel()
+    d = optimizer.dim
     return as_knob_tensor(x0.reshape(-1), d, name="x0")[0][0], d
 
 
@@ -194,7 +201,7 @@ def _machine_limits(run: Run, d: int) -> None:
             check_setting(run.x_initial, bounds)
         except ValueError as err:
             raise ValueError(f"the logged initial knobs are not allowed: {err}") from err
-    machine_tol = getattr(objective, "tolerance", None)
+    machine_tol = objective.tolerance
     if machine_tol is not None:
         run.read_tol = torch.as_tensor(machine_tol, dtype=DTYPE).expand(d).clone()
     else:
@@ -203,9 +210,12 @@ def _machine_limits(run: Run, d: int) -> None:
 
 def start_run(objective, optimizer, x0, budget: int, *, knob_names, method, resume, opts) -> Run:
     """Check the arguments and read the machine's start state (setpoints, then readbacks)."""
-    is_machine = isinstance(objective, Machine)
-    if not is_machine and not callable(objective):
-        raise ValueError("objective must be a Machine or a callable x -> float")
+    if not isinstance(optimizer, AskTellOptimizer):
+        raise ValueError(
+            f"the optimizer ({type(optimizer).__name__}) must be an AskTellOptimizer: the loop "
+            "reads its name, dim, maximize, notices and uses_observables"
+        )
+    is_machine = is_machine_objective(objective)
     logged = _logged_evaluations(resume, x0, budget)
     # the restore target: the SETPOINTS found at the start (never readbacks); the readbacks
     # found are the reference of a knob that already read off its setpoint
@@ -223,21 +233,21 @@ def start_run(objective, optimizer, x0, budget: int, *, knob_names, method, resu
             )
         x_initial = logged_initial
     x0, d = _start_point(optimizer, x0, resume, logged, x_initial, is_machine)
-    names = knob_columns(knob_names, objective, d)
-    label = method if method is not None else getattr(optimizer, "name", type(optimizer).__name__)
+    if knob_names is None and is_machine:
+        knob_names = objective.knob_names
+    names = knob_columns(knob_names, d)
+    label = method if method is not None else optimizer.name
     if isinstance(resume, RunRecords) and resume.knob_names and resume.knob_names != names:
         raise ValueError(f"the resumed log has knobs {resume.knob_names}, the run has {names}")
     run = Run(objective, opts, budget, is_machine, logged, x0, x_found, rb_found, x_initial,
-              names, label, bool(getattr(optimizer, "maximize", True)))  # fmt: skip
+              names, label, bool(optimizer.maximize))  # fmt: skip
     if is_machine:
         _machine_limits(run, d)
-    if getattr(optimizer, "uses_observables", False) and not getattr(
-        objective, "observable_names", None
-    ):
+    if optimizer.uses_observables and not (is_machine and objective.observable_names):
         raise ValueError(f"{label} fits the observables of each reading; this machine reports none")
     run.objective_range = opts.objective_range
     if run.objective_range is None and is_machine:
-        run.objective_range = getattr(objective, "objective_limits", None)
+        run.objective_range = objective.objective_limits
     run.judge = ReadingJudge(opts.noise, run.objective_range, readings=[r["y"] for r in logged])
     _noise_in_force(run, resume)
     return run
@@ -267,10 +277,12 @@ def open_log(run: Run, log: RunLog | str | Path | None, resume) -> None:
             header = {"knob_names": run.names, "method": run.label, "budget": run.budget}
             if run.bounds is not None:
                 header["bounds"] = run.bounds.tolist()
-            for key in ("observable_names", "observable_units"):  # what a reading also measures
-                value = getattr(run.objective, key, None)
-                if value is not None:
-                    header[key] = [str(v) for v in value]
+            if run.is_machine:  # what a reading also measures
+                m = run.objective
+                for key, value in (("observable_names", m.observable_names),
+                                   ("observable_units", m.observable_units)):  # fmt: skip
+                    if value is not None:
+                        header[key] = [str(v) for v in value]
             log = RunLog.create(log, header)
     run.log, run.own_log = log, own_log
     if log is not None and log.header.get("knob_names") not in (None, run.names):
@@ -291,24 +303,19 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
     if noise is not None and noise["source"] == "to measure":  # before anything moves
         run.noise_info = noise = measure_noise(run, noise["n"])
     objective = run.objective
-    run_steps(
+    ctx = StepContext(
         run.evaluate,
-        optimizer,
-        run.x0,
-        len(rows),
-        run.budget,
-        rows,
-        names=run.names,
-        label=run.label,
+        run.names,
+        run.label,
         log=run.log,
         x_initial=run.x_initial,
         x_found=run.x_found,
         rb_found=run.rb_found,
-        reading_info=(lambda: getattr(objective, "last_reading", None)),
-        observables=lambda: observables_of(objective),
+        reading_info=(lambda: objective.last_reading) if run.is_machine else (lambda: None),
+        observables=(lambda: observables_of(objective)) if run.is_machine else (lambda: None),
+        objective_floor=run.opts.objective_floor,
         callback=callback,
         progress=progress,
-        objective_floor=run.opts.objective_floor,
-        guard=guard,
         start_fields={} if noise is None else {"noise": noise},
     )
+    run_steps(ctx, optimizer, run.x0, rows, first=len(rows), budget=run.budget, guard=guard)

@@ -3,7 +3,9 @@ and the table kept in step, and the small helpers of :func:`~pigp_torch.loop.opt
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -15,9 +17,8 @@ from pigp_torch.loop.signals import RunAborted, SignalGuard
 _RESERVED = ("step", "y", "method", "ask_time_s", "eval_time_s")
 
 
-def knob_columns(knob_names, objective, d: int) -> list[str]:
-    if knob_names is None:
-        knob_names = getattr(objective, "knob_names", None)
+def knob_columns(knob_names, d: int) -> list[str]:
+    """The table's knob columns: ``knob_names`` (``d``, checked), ``x0 .. x{d-1}`` for ``None``."""
     names = [f"x{i}" for i in range(d)] if knob_names is None else [str(n) for n in knob_names]
     if len(names) != d:
         raise ValueError(f"{len(names)} knob names for {d} knobs")
@@ -49,61 +50,79 @@ def best_row(rows: list[dict], names: list[str], maximize: bool) -> dict | None:
     return {"step": b["step"], "x": [b[n] for n in names], "y": b["y"]}
 
 
-def observables_of(objective) -> list[float] | None:
+def observables_of(machine) -> list[float] | None:
     """The observables of a machine's last reading (``last_observables``, e.g. the four beam
-    numbers on a screen) as floats; ``None`` for a machine (or callable) without them."""
-    obs = getattr(objective, "last_observables", None)
+    numbers on a screen) as floats; ``None`` for a machine without them."""
+    obs = machine.last_observables
     if obs is None:
         return None
     return [float(v) for v in torch.as_tensor(obs, dtype=DTYPE).reshape(-1).tolist()]
 
 
-def _log_start(log, x_initial, x_found, rb_found, budget: int, first: int, extra) -> None:
+@dataclasses.dataclass(frozen=True)
+class StepContext:
+    r"""What every step of one run reads, built once at its start
+    (:func:`~pigp_torch.loop.session.run_all_steps`).
+
+    Attributes:
+        evaluate: ``(x, step) -> (y, reads)``: move to ``x`` (``d``) and read the objective
+            (``reads``: the attempts it took).
+        names: the ``d`` knob columns; label: the ``method`` column.
+        log: the run log (``None``: none); the start record goes there first.
+        x_initial: ``d`` restore target (``None`` for a plain callable); x_found, rb_found: the
+            setpoints and readbacks found at the start (logged when they differ / exist).
+        reading_info: ``() -> dict | None``: the machine's description of its last reading.
+        observables: ``() -> list | None``: the observables of the last reading, logged with it
+            and told to an optimizer that fits them.
+        objective_floor: a reading below it aborts the run (``None``: no floor).
+        callback: called with each new row (a dict) after its step, or ``None``.
+        progress: show a tqdm progress bar.
+        start_fields: more fields of the start record (the noise in force).
+    """
+
+    evaluate: Callable[..., tuple[float, int]]
+    names: list[str]
+    label: str
+    log: object = None
+    x_initial: torch.Tensor | None = None
+    x_found: torch.Tensor | None = None
+    rb_found: torch.Tensor | None = None
+    reading_info: Callable[[], object] = lambda: None
+    observables: Callable[[], list[float] | None] = lambda: None
+    objective_floor: float | None = None
+    callback: Callable[[dict], None] | None = None
+    progress: bool = False
+    start_fields: dict = dataclasses.field(default_factory=dict)
+
+
+def _log_start(ctx: StepContext, budget: int, first: int) -> None:
     """The start record: the restore target, and the knobs found when they differ from it (and
-    ``extra``, the noise in force)."""
-    extra = dict(extra)
-    if x_found is not None and x_found is not x_initial:
-        extra["found_knobs"] = x_found.tolist()
-    if rb_found is not None:  # the knobs above are setpoints; their readbacks then
-        extra["found_readbacks"] = rb_found.tolist()
-    log.log_start(x_initial, budget=budget, first_step=first, **extra)
+    ``ctx.start_fields``, the noise in force)."""
+    extra = dict(ctx.start_fields)
+    if ctx.x_found is not None and ctx.x_found is not ctx.x_initial:
+        extra["found_knobs"] = ctx.x_found.tolist()
+    if ctx.rb_found is not None:  # the knobs above are setpoints; their readbacks then
+        extra["found_readbacks"] = ctx.rb_found.tolist()
+    ctx.log.log_start(ctx.x_initial, budget=budget, first_step=first, **extra)
 
 
 def run_steps(
-    evaluate,
-    optimizer,
-    x0,
-    first,
-    budget,
-    rows,
-    *,
-    names,
-    label,
-    log,
-    x_initial,
-    x_found,
-    reading_info,
-    observables=lambda: None,
-    rb_found=None,
-    callback,
-    progress,
-    objective_floor,
+    ctx: StepContext, optimizer, x0, rows: list[dict], *, first: int, budget: int,
     guard: SignalGuard,
-    start_fields=(),
-) -> None:
-    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize`, appended to ``rows``.
-    ``observables()``: those of the evaluation's reading (the last one taken) or ``None``, logged
-    with it and told to an optimizer that fits them; ``start_fields``: in the start record."""
+) -> None:  # fmt: skip
+    """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize` from ``x0`` (``d``, the
+    setting of step 0), appended to ``rows``; what each step reads is ``ctx``."""
+    log, names, label = ctx.log, ctx.names, ctx.label
     if log is not None:
-        _log_start(log, x_initial, x_found, rb_found, budget, first, start_fields)
+        _log_start(ctx, budget, first)
     bar = None
-    if progress:
+    if ctx.progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=budget, initial=first, desc=str(label))
     try:
         x = x0
-        seen = len(getattr(optimizer, "notices", ()))  # notices of a replay are not repeated
+        seen = len(optimizer.notices)  # notices of a replay are not repeated
         for step in range(first, budget):
             t_set = time.time()
             ask_time = 0.0
@@ -112,15 +131,15 @@ def run_steps(
                 t0 = time.perf_counter()
                 x = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
                 ask_time = time.perf_counter() - t0
-                notices = list(getattr(optimizer, "notices", ())[seen:])
+                notices = list(optimizer.notices[seen:])
                 seen += len(notices)
             if log is not None:
                 for notice in notices:  # the optimizer's own findings, before the move
                     log.write("notice", step=step, time=_utc_now(), **notice)
             t0 = time.perf_counter()
-            y, reads = evaluate(x, step=step)  # every move a checked ramp
-            info = reading_info()
-            obs = observables()
+            y, reads = ctx.evaluate(x, step=step)  # every move a checked ramp
+            info = ctx.reading_info()
+            obs = ctx.observables()
             eval_time = time.perf_counter() - t0
             row = {"step": step, **dict(zip(names, x.tolist(), strict=True))}
             row.update(y=y, method=label, ask_time_s=ask_time, eval_time_s=eval_time)
@@ -138,14 +157,13 @@ def run_steps(
             t0 = time.perf_counter()
             tell(optimizer, x, y, obs)
             row["ask_time_s"] = ask_time + (time.perf_counter() - t0)
-            if callback is not None:
-                callback(dict(row))
+            if ctx.callback is not None:
+                ctx.callback(dict(row))
             if bar is not None:
                 bar.update(1)
-            if objective_floor is not None and y < objective_floor:
-                raise RunAborted(
-                    f"objective {y:.6g} at step {step} is below the floor {objective_floor:g}"
-                )
+            floor = ctx.objective_floor
+            if floor is not None and y < floor:
+                raise RunAborted(f"objective {y:.6g} at step {step} is below the floor {floor:g}")
     finally:
         if bar is not None:
             bar.close()

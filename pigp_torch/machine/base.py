@@ -18,15 +18,46 @@ from pigp_torch._utils import DTYPE, as_knob_tensor, check_bounds, max_step_tens
 
 @runtime_checkable
 class Machine(Protocol):
-    r"""What the optimization loop needs from a machine.
+    r"""What the optimization loop reads from a machine: every member it uses, declared.
+
+    :class:`GuardedMachine` implements the whole protocol: the five members a machine must
+    provide (``knob_names``, ``bounds``, ``set``, ``read``, ``get``) and the defaults of the
+    others, which a machine overrides where it has the thing (an EPICS machine its setpoint PVs,
+    tolerance, objective limits and disconnection count; a simulated screen its observables).
+    The loop reads these attributes directly; a machine without them is refused at the start.
 
     Attributes:
         knob_names: ``d`` knob names (control-system names on a real machine).
-        bounds: ``2 x d`` allowed knob range (row 0 lower, row 1 upper).
+        bounds: ``2 x d`` allowed knob range (row 0 lower, row 1 upper; knob units).
+        max_step: the machine's own per-knob step limit (anything
+            :func:`~pigp_torch._utils.max_step_tensor` takes), or ``None`` (default: none).
+        tolerance: ``d`` (or scalar) allowed :math:`|x_\mathrm{rb} - x|` of a readback in knob
+            units, or ``None`` (default: the loop's ``readback_tol`` fraction of each range).
+        objective_limits: ``(lower, upper)`` a valid reading lies in (objective units), or
+            ``None`` (default: no limits).
+        knob_units: ``d`` units of the knobs, or ``None`` (default: not stated).
+        observable_names, observable_units: the ``m`` observables each reading also measures
+            and their units, or ``None`` (default: the machine measures none).
+        last_observables: ``m`` observables of the last reading, or ``None`` (default).
+        last_reading: a dict describing the last reading (``"values"``: the single readings it
+            averaged; timestamps), or ``None`` (default).
+        last_acknowledged: ``d`` setpoints the machine last confirmed, or ``None``.
+        disconnections: channel disconnections seen so far, or ``None`` (default: the machine
+            has no channels).
     """
 
     knob_names: list[str]
     bounds: torch.Tensor
+    max_step: object
+    tolerance: object
+    objective_limits: tuple[float, float] | None
+    knob_units: tuple[str, ...] | None
+    observable_names: tuple[str, ...] | None
+    observable_units: tuple[str, ...] | None
+    last_observables: torch.Tensor | None
+    last_reading: dict | None
+    last_acknowledged: torch.Tensor | None
+    disconnections: int | None
 
     def set(self, x: torch.Tensor) -> None:
         """Apply knob setting ``x`` (``d``); raise ``ValueError`` if it is not allowed."""
@@ -37,8 +68,48 @@ class Machine(Protocol):
         ...
 
     def get(self) -> torch.Tensor:
-        """The current knob setting (``d`` float64)."""
+        """The current knob setting (``d`` float64): the readbacks where the machine has them."""
         ...
+
+    def setpoints(self) -> torch.Tensor | None:
+        """The setpoints the machine holds (``d``, read from the control system), or ``None``
+        where it does not tell setpoints from readbacks (default)."""
+        ...
+
+    def advance_noise(self, n_reads: int) -> None:
+        """Move a simulated noise stream on as ``n_reads`` readings would (a resumed run); a
+        no-op by default."""
+        ...
+
+
+#: Every member of :class:`Machine`; the first five a machine must provide itself,
+#: :class:`GuardedMachine` gives the defaults of the others.
+MACHINE_MEMBERS = (
+    "knob_names", "bounds", "set", "read", "get", "max_step", "tolerance", "objective_limits",
+    "knob_units", "observable_names", "observable_units", "last_observables", "last_reading",
+    "last_acknowledged", "disconnections", "setpoints", "advance_noise",
+)  # fmt: skip
+
+
+def is_machine_objective(objective) -> bool:
+    """``True`` for a :class:`Machine` (every member of :data:`MACHINE_MEMBERS`), ``False`` for
+    a plain callable ``x -> float``.
+
+    Raises:
+        ValueError: an object with ``set``, ``read`` and ``get`` that lacks other members of the
+            protocol (they are named), or neither a machine nor a callable.
+    """
+    lacking = [m for m in MACHINE_MEMBERS if not hasattr(objective, m)]
+    if not lacking:
+        return True
+    if all(hasattr(objective, m) for m in ("set", "read", "get")):
+        raise ValueError(
+            f"the machine ({type(objective).__name__}) lacks the Machine protocol's {lacking}: "
+            "derive it from GuardedMachine, which gives their defaults"
+        )
+    if not callable(objective):
+        raise ValueError("objective must be a Machine or a callable x -> float")
+    return False
 
 
 def check_setting(
@@ -88,7 +159,10 @@ class GuardedMachine:
     r"""Base class for machines whose :meth:`set` is validated by :func:`check_setting`.
 
     Subclasses implement :meth:`_apply` (send a validated setting to the hardware / simulator)
-    and :meth:`read`. The current setting is tracked here.
+    and :meth:`read`. The current setting is tracked here. Every other member of the
+    :class:`Machine` protocol has its default here (no tolerance, objective limits, units,
+    observables, reading description, disconnection count or setpoints of its own; ``advance_noise``
+    does nothing); a subclass overrides those it has.
 
     Args:
         bounds: ``2 x d`` knob bounds.
@@ -97,6 +171,15 @@ class GuardedMachine:
             ``d`` absolute tensor), or ``None``.
         x_init: ``d`` initial setting (default zeros), validated against the bounds only.
     """
+
+    tolerance = None
+    objective_limits: tuple[float, float] | None = None
+    knob_units: tuple[str, ...] | None = None
+    observable_names: tuple[str, ...] | None = None
+    observable_units: tuple[str, ...] | None = None
+    last_observables: torch.Tensor | None = None
+    last_reading: dict | None = None
+    disconnections: int | None = None
 
     def __init__(self, bounds, knob_names, *, max_step=None, x_init=None) -> None:
         self.bounds = check_bounds(bounds)
@@ -135,6 +218,14 @@ class GuardedMachine:
     def read(self) -> float:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def setpoints(self) -> torch.Tensor | None:
+        """``None``: the machine does not tell setpoints from readbacks (see
+        :attr:`last_acknowledged`)."""
+        return None
+
+    def advance_noise(self, n_reads: int) -> None:
+        """Nothing to advance: the machine has no simulated noise stream."""
+
 
 def ramp_steps(current: torch.Tensor, target: torch.Tensor, limit) -> list[torch.Tensor]:
     r"""The settings of a straight-line move from ``current`` to ``target`` within ``limit``.
@@ -155,10 +246,10 @@ def setpoints_of(machine) -> torch.Tensor:
     """Where a ramp starts: the machine's setpoints (``setpoints()``, read from the IOC), else
     its last acknowledged setting (``last_acknowledged``), else ``get()`` — never a readback
     where the machine tells setpoints from readbacks."""
-    setpoints = getattr(machine, "setpoints", None)
-    if callable(setpoints):
-        return torch.as_tensor(setpoints(), dtype=DTYPE).reshape(-1).clone()
-    acked = getattr(machine, "last_acknowledged", None)
+    setpoints = machine.setpoints()
+    if setpoints is not None:
+        return torch.as_tensor(setpoints, dtype=DTYPE).reshape(-1).clone()
+    acked = machine.last_acknowledged
     if acked is not None:
         return torch.as_tensor(acked, dtype=DTYPE).reshape(-1).clone()
     return torch.as_tensor(machine.get(), dtype=DTYPE).reshape(-1).clone()
@@ -174,7 +265,7 @@ def ramp(machine: Machine, target) -> int:
     """
     target = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
     current = setpoints_of(machine)
-    steps = ramp_steps(current, target, getattr(machine, "max_step", None))
+    steps = ramp_steps(current, target, machine.max_step)
     for x in steps:
         machine.set(x)
     return len(steps)

@@ -3,12 +3,12 @@ needs over caproto's threading client (:class:`CaprotoAdapter`), and the check o
 bounds against the IOC's control limits.
 
 **Client library.** The CA calls go through caproto's threading client
-(``caproto.threading.client.Context``): pure Python, installable with pip on any platform, and the
-same package as the simulated IOC (:mod:`pigp_torch.testing.ioc`), so the whole EPICS path is
-tested end to end over real Channel Access on the loopback interface. pyepics is the operators'
-usual client but needs the ``libca`` shared library and its environment; the CA calls are kept in
-the small adapter :class:`CaprotoAdapter` (connect, read many, read with timestamp, control
-limits, write many, close, a disconnection counter), named by the class attribute
+(``caproto.threading.client.Context``): pure Python, installable with pip on any platform, and
+the same package as the simulated IOC (:mod:`pigp_torch.simulated_epics.ioc`), so the whole EPICS
+path is tested end to end over real Channel Access on the loopback interface. pyepics is the
+operators' usual client but needs the ``libca`` shared library and its environment; the CA calls
+are kept in the small adapter :class:`CaprotoAdapter` (connect, read many, read with timestamp,
+control limits, write many, close, a disconnection counter), named by the class attribute
 ``EpicsMachine._adapter_class``, so that another client (pyepics; pvAccess:
 :class:`pigp_torch.machine.pva.PvaMachine`) plugs in without touching :class:`EpicsMachine`.
 A put the IOC refuses (``ECA_PUTFAIL``: a value outside its control limits DRVL/DRVH, a record

@@ -86,6 +86,13 @@ class SimulatedMachine(GuardedMachine):
             value += self.noise * float(eps)
         return value
 
+    def advance_noise(self, n_reads: int) -> None:
+        """Move the noise stream on as ``n_reads`` readings would (a resumed run): one normal
+        variate per reading, taken through :meth:`read` with the knobs unmoved."""
+        if self.noise > 0:
+            for _ in range(int(n_reads)):
+                self.read()
+
     def __call__(self, x) -> float:
         """Set the knobs to ``x`` (``d``) and take one reading."""
         self.set(x)

@@ -45,7 +45,7 @@ class RunContext:
             archive, as on a live machine).
         archive: ``(size, *, spread, seed) -> (X_a: size x d, Y_a: size)``, readings of the
             machine near its operating point (the benchmark gives
-            :func:`~pigp_torch.benchmark.archive.machine_archive` of its simulated machine);
+            :func:`~pigp_torch.bench.archive.machine_archive` of its simulated machine);
             ``None``: none.
         maximize: maximize (default) or minimize the objective.
         knob_bounds: ``2 x d`` bounds; ``None``: the machine's.

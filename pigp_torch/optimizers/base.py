@@ -22,12 +22,19 @@ class AskTellOptimizer:
 
     Subclasses implement :meth:`ask` and may extend :meth:`tell` (call ``super().tell`` first).
 
+    The loop (:func:`pigp_torch.loop.optimize`) reads these attributes directly: ``name`` (the
+    table's ``method`` column by default), ``dim`` (``d``), ``maximize``, ``notices`` (what
+    :meth:`notify` recorded; the loop logs each new one) and ``uses_observables`` (``True``:
+    :meth:`tell` also takes ``observables=``, the ``m`` observables of the reading; default
+    ``False``).
+
     Args:
         bounds: ``2 x d`` knob bounds.
         maximize: maximize (default) or minimize the objective.
     """
 
     name = "base"
+    uses_observables = False
 
     def __init__(self, bounds, *, maximize: bool = True) -> None:
         self.bounds = check_bounds(bounds)

@@ -33,9 +33,7 @@ the misalignments), each step
    standard deviations), and the best of all end points is asked. When the fit has not
    moved since the last search (the prediction at the previous ask changed by at most
    ``reuse_tol`` noise standard deviations), the previous ask lies in the region, and the region
-   has not grown, the previous ask is asked again without a search; when it moved by at most
-   ``local_tol`` noise standard deviations (default 0: never), the search starts from the
-   previous ask and the ``n_local`` best candidates only.
+   has not grown, the previous ask is asked again without a search.
 
 The region grows (:math:`r \to \min(2r, r_{max})`) after a measurement better than the best
 before it or one the model predicted (every observable within ``agree_sd`` noise standard
@@ -54,6 +52,7 @@ goal (``"model"``: with a noisy screen the luckiest reading is not the best sett
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -68,7 +67,61 @@ from pigp_torch.optimizers._least_squares import (
 )
 from pigp_torch.optimizers.base import AskTellOptimizer
 
-__all__ = ["FittedModelOptimizer", "fit_unknowns"]
+__all__ = ["FittedModelOptimizer", "ModelFitSettings", "fit_unknowns"]
+
+
+#: Fixed parts of the method (module docstring): the trust region's limits (fraction of each
+#: knob's range), the ask's Sobol candidates and refined starts, the polish's L-BFGS-B iterations
+#: and stopping change (noise units), the ask's and the fit's Levenberg–Marquardt iterations,
+#: the fit's stopping cost change and restart threshold (squared noise units), the noise sd
+#: within which a reading agrees with the model and the fit "has not moved", and the
+#: least-squares end points polished.
+TRUST_MIN, TRUST_MAX = 0.01, 1.0
+N_CANDIDATES, N_REFINE = 256, 16
+MAXITER, SEARCH_FTOL = 30, 1e-6
+LS_ITER, FIT_ITER = 30, 20
+FIT_COST_TOL, RESTART_ABOVE = 1e-3, 9.0
+AGREE_SD, REUSE_TOL = 3.0, 0.05
+N_POLISH = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelFitSettings:
+    r"""The options of a :class:`FittedModelOptimizer`, checked once.
+
+    Args:
+        obs_sd: observation noise :math:`s` of the fit (observable units), > 0.
+        prior_sd: prior width :math:`\sigma_u` in normalized units (default :math:`1/\sqrt3`).
+        trust: initial trust-region half width, fraction of each knob's range, in
+            ``[TRUST_MIN, TRUST_MAX]`` (default 0.25).
+        fit_restarts: a fit whose cost per observable number exceeds :data:`RESTART_ABOVE`
+            squared noise units is repeated from the prior mean and ``fit_restarts - 1`` Sobol
+            draws of the unknowns' ranges, the best kept (default 4; 0: never).
+        best_from: ``"readings"`` (default) or ``"model"`` (module docstring).
+        seed: seed of the Sobol candidates and the fit's restarts (default 0).
+        maximize: direction of the told scalar ``y`` (default ``False``: minimized).
+
+    Raises:
+        ValueError: a value out of its range (one line naming it).
+    """
+
+    obs_sd: float
+    prior_sd: float = 1 / math.sqrt(3)
+    trust: float = 0.25
+    fit_restarts: int = 4
+    best_from: str = "readings"
+    seed: int = 0
+    maximize: bool = False
+
+    def __post_init__(self) -> None:
+        if not (float(self.obs_sd) > 0 and float(self.prior_sd) > 0):
+            raise ValueError(f"obs_sd and prior_sd must be > 0, got {self.obs_sd}, {self.prior_sd}")
+        if not (TRUST_MIN <= float(self.trust) <= TRUST_MAX):
+            raise ValueError(f"trust must lie in [{TRUST_MIN}, {TRUST_MAX}], got {self.trust}")
+        if int(self.fit_restarts) < 0:
+            raise ValueError(f"fit_restarts must be >= 0, got {self.fit_restarts}")
+        if self.best_from not in ("readings", "model"):
+            raise ValueError(f"best_from must be 'readings' or 'model', got {self.best_from!r}")
 
 
 class FittedModelOptimizer(AskTellOptimizer):
@@ -80,42 +133,20 @@ class FittedModelOptimizer(AskTellOptimizer):
         goal: ``N x m`` observables ``->`` ``N`` values to minimize (smooth; e.g. a smoothed mean
             absolute error to the target).
         theta_center, theta_half_width: ``P`` centre and half width of the unknowns' ranges.
-        obs_sd: observation noise (observable units) in the fit.
-        prior_sd: prior width :math:`\sigma_u` in normalized units (default :math:`1/\sqrt3`).
-        trust: initial trust-region half width, fraction of each knob's range (default 0.25).
-        trust_min, trust_max: its limits (default 0.01, 1).
-        n_candidates, n_refine: Sobol candidates and starts of the ask's search (256, 16).
-        maxiter: L-BFGS-B iterations of the polish (default 30).
-        fit_iter: Levenberg–Marquardt iterations per fit (default 20).
-        fit_restarts, restart_above: a fit whose cost per observable number exceeds
-            ``restart_above`` squared noise units (default 9) is repeated from the prior mean and
-            ``fit_restarts - 1`` Sobol draws of the unknowns' ranges, the best kept (default 4;
-            0: never).
         residual: ``N x m`` observables ``->`` ``N x r`` residuals whose zero is the goal's
             optimum (e.g. observables minus target; default ``None``: L-BFGS-B on the goal
             only).
-        ls_iter: Levenberg–Marquardt iterations of the ask's least squares (default 30).
-        n_polish: least-squares end points polished on the goal (default 2), unless the best
-            one's goal is at most ``polish_tol`` noise sd (default 0: always polished).
-        fit_cost_tol: the fit stops when its cost drops by less (squared noise units; 1e-3).
-        reuse_tol: the fit "has not moved" when the prediction at the previous ask changed by
-            at most this many noise standard deviations (default 0.05).
-        agree_sd: a reading agrees with the model when every observable lies within this many
-            noise standard deviations of the prediction (default 3).
-        local_tol, n_local: a fit that moved by at most ``local_tol`` noise sd (and more than
-            ``reuse_tol``) is searched from the previous ask and the ``n_local`` best candidates
-            only (default 0, 2: off; cheaper with a noisy screen, slightly worse optima).
-        search_ftol: L-BFGS-B stopping change of the summed goal in noise units (1e-6).
-        best_from: ``"readings"`` (default) or ``"model"`` (module docstring).
-        seed: seed of the Sobol candidates.
-        maximize: direction of the told scalar ``y`` (used by :meth:`best` and the trust region).
+        settings: a :class:`ModelFitSettings`, or ``None``: built from ``options``.
+        options: :class:`ModelFitSettings` fields (``obs_sd=`` ..., over ``settings``).
 
     Attributes:
+        settings: the :class:`ModelFitSettings` in force (``obs_sd``, ``seed``, ``best_from``
+            are also attributes).
         uses_observables: ``True``: ``tell`` takes ``observables``.
         u: the fitted normalized unknowns (``P``); theta: the fitted unknowns.
         fit_cost: the cost of the last fit (all readings); trust: the current trust-region half
             width. n_searches, n_reused: asks that searched / repeated the previous ask.
-            n_restarted: fits repeated from other starts (``restart_above``).
+            n_restarted: fits repeated from other starts (:data:`RESTART_ABOVE`).
         last_misfit: the largest ``|o - prediction| / obs_sd`` of the last reading.
     """
 
@@ -130,72 +161,27 @@ class FittedModelOptimizer(AskTellOptimizer):
         goal: Callable[[torch.Tensor], torch.Tensor],
         theta_center,
         theta_half_width,
-        obs_sd: float,
-        prior_sd: float = 1 / math.sqrt(3),
-        trust: float = 0.25,
-        trust_min: float = 0.01,
-        trust_max: float = 1.0,
-        n_candidates: int = 256,
-        n_refine: int = 16,
-        maxiter: int = 30,
-        fit_iter: int = 20,
-        fit_restarts: int = 4,
-        restart_above: float = 9.0,
         residual: Callable[[torch.Tensor], torch.Tensor] | None = None,
-        ls_iter: int = 30,
-        n_polish: int = 2,
-        polish_tol: float = 0.0,
-        fit_cost_tol: float = 1e-3,
-        agree_sd: float = 3.0,
-        reuse_tol: float = 0.05,
-        local_tol: float = 0.0,
-        n_local: int = 2,
-        search_ftol: float = 1e-6,
-        best_from: str = "readings",
-        seed: int = 0,
-        maximize: bool = False,
+        settings: ModelFitSettings | None = None,
+        **options,
     ) -> None:
-        super().__init__(bounds, maximize=maximize)
+        s = (
+            ModelFitSettings(**options)
+            if settings is None
+            else dataclasses.replace(settings, **options)
+        )
+        super().__init__(bounds, maximize=s.maximize)
+        self.settings = s
         self.model = model
         self.goal = goal
+        self.residual = residual
         self.center = torch.as_tensor(theta_center, dtype=DTYPE).reshape(-1)
         self.half_width = torch.as_tensor(theta_half_width, dtype=DTYPE).reshape(-1)
         if self.center.shape != self.half_width.shape or (self.half_width <= 0).any():
             raise ValueError("theta_center and theta_half_width must be P and half widths > 0")
-        if not (obs_sd > 0 and prior_sd > 0):
-            raise ValueError("obs_sd and prior_sd must be > 0")
-        if not (0 < trust_min <= trust <= trust_max):
-            raise ValueError("need 0 < trust_min <= trust <= trust_max")
-        self.obs_sd = float(obs_sd)
-        self.prior_sd = float(prior_sd)
-        self.trust = float(trust)
-        self.trust_min = float(trust_min)
-        self.trust_max = float(trust_max)
-        self.n_candidates = int(n_candidates)
-        self.n_refine = int(n_refine)
-        self.maxiter = int(maxiter)
-        self.fit_iter = int(fit_iter)
-        if not (fit_restarts >= 0 and restart_above > 0):
-            raise ValueError("fit_restarts must be >= 0 and restart_above > 0")
-        self.fit_restarts = int(fit_restarts)
-        self.restart_above = float(restart_above)
+        self.trust = float(s.trust)
         self.n_restarted = 0
-        if best_from not in ("readings", "model"):
-            raise ValueError(f"best_from must be 'readings' or 'model', got {best_from!r}")
-        if not (reuse_tol >= 0 and search_ftol > 0):
-            raise ValueError("reuse_tol must be >= 0 and search_ftol > 0")
-        self.residual = residual
-        self.ls_iter = int(ls_iter)
-        self.n_polish = int(n_polish)
-        self.polish_tol = float(polish_tol)
-        self.fit_cost_tol = float(fit_cost_tol)
-        self.agree_sd = float(agree_sd)
         self.last_misfit = float("nan")
-        self.reuse_tol = float(reuse_tol)
-        self.local_tol = float(local_tol)
-        self.n_local = int(n_local)
-        self.search_ftol = float(search_ftol)
-        self.best_from = best_from
         self.n_searches = 0
         self.n_reused = 0
         self._search_theta: torch.Tensor | None = None
@@ -203,12 +189,26 @@ class FittedModelOptimizer(AskTellOptimizer):
         self._best_cache: tuple | None = None
         self._search_trust = 0.0
         self._merged = MergedReadings()
-        self.seed = int(seed)
         self.O: list[torch.Tensor] = []
         self.u = torch.zeros_like(self.center)
         self.fit_cost = float("nan")
         self._last_ask: torch.Tensor | None = None
         self.machine_model = None
+
+    @property
+    def obs_sd(self) -> float:
+        """The observation noise of the fit (observable units)."""
+        return float(self.settings.obs_sd)
+
+    @property
+    def seed(self) -> int:
+        """The seed of the Sobol candidates and the fit's restarts."""
+        return int(self.settings.seed)
+
+    @property
+    def best_from(self) -> str:
+        """How :meth:`best` chooses: ``"readings"`` or ``"model"``."""
+        return self.settings.best_from
 
     @classmethod
     def from_machine_model(
@@ -246,15 +246,15 @@ class FittedModelOptimizer(AskTellOptimizer):
             with torch.no_grad():
                 pred = self.model(self._check_point(x)[None], self._fit_theta)[0]
             self.last_misfit = float(((o_new - pred).abs() / self.obs_sd).max())
-            agree = self.last_misfit <= self.agree_sd
+            agree = self.last_misfit <= AGREE_SD
         super().tell(x, y)
         self.O.append(o_new)
         if best_before is not None:
             better = y > best_before if self.maximize else y < best_before
             self.trust = (
-                min(2 * self.trust, self.trust_max)
+                min(2 * self.trust, TRUST_MAX)
                 if better or agree
-                else max(self.trust / 2, self.trust_min)
+                else max(self.trust / 2, TRUST_MIN)
             )
         # Readings at a setting read before are merged (their mean, counted n times): the same
         # least squares with fewer model rows (the ask repeats its optimum while the fit stands).
@@ -273,13 +273,13 @@ class FittedModelOptimizer(AskTellOptimizer):
             self.center,
             self.half_width,
             obs_sd=self.obs_sd,
-            prior_sd=self.prior_sd,
+            prior_sd=float(self.settings.prior_sd),
             u0=self.u,
-            max_iter=self.fit_iter,
+            max_iter=FIT_ITER,
             weights=n,
-            cost_tol=self.fit_cost_tol,
-            restarts=self.fit_restarts,
-            restart_above=self.restart_above,
+            cost_tol=FIT_COST_TOL,
+            restarts=int(self.settings.fit_restarts),
+            restart_above=RESTART_ABOVE,
             seed=self.seed + self.n_told,
         )
         self.n_restarted += int(restarted)
@@ -334,13 +334,13 @@ class FittedModelOptimizer(AskTellOptimizer):
         inside = last is not None and bool(((last >= box[0]) & (last <= box[1])).all())
         same_region = inside and self.trust <= self._search_trust
         change = self._fit_change(theta) if same_region else float("inf")
-        if change <= self.reuse_tol:
+        if change <= REUSE_TOL:
             # The fit did not move: the previous optimum is still the model's optimum.
             self.n_reused += 1
             return last.clone()
         width = box[1] - box[0]
         sobol = torch.quasirandom.SobolEngine(self.dim, scramble=True, seed=self.seed + self.n_told)
-        Z = sobol.draw(self.n_candidates, dtype=DTYPE)
+        Z = sobol.draw(N_CANDIDATES, dtype=DTYPE)
         extra = [x_best] + ([last] if last is not None else [])
         Ze = ((torch.stack(extra) - box[0]) / width.clamp_min(1e-300)).clamp(0.0, 1.0)
         Z = torch.cat([Ze, Z])
@@ -348,12 +348,9 @@ class FittedModelOptimizer(AskTellOptimizer):
             values = self.goal(self.model(box[0] + width * Z, theta))
         values = torch.where(torch.isfinite(values), values, torch.full_like(values, torch.inf))
         order = torch.argsort(values)
-        # The n_refine best candidates are refined together (one batched evaluation per
+        # The N_REFINE best candidates are refined together (one batched evaluation per
         # iteration); the previous ask inside the box is one more start (a warm start).
-        # A fit that moved by less than local_tol noise sd moves the optimum little: the
-        # previous ask and the n_local best candidates suffice.
-        n_starts = self.n_local if change <= self.local_tol else self.n_refine
-        starts = Z[order[:n_starts]]
+        starts = Z[order[:N_REFINE]]
         if inside:
             starts = torch.cat([Ze[-1:], starts])
 
@@ -372,11 +369,11 @@ class FittedModelOptimizer(AskTellOptimizer):
             box,
             starts,
             scale=self.obs_sd,
-            ls_iter=self.ls_iter,
-            n_polish=self.n_polish,
-            polish_tol=self.polish_tol,
-            maxiter=self.maxiter,
-            ftol=self.search_ftol,
+            ls_iter=LS_ITER,
+            n_polish=N_POLISH,
+            polish_tol=0.0,  # always polished
+            maxiter=MAXITER,
+            ftol=SEARCH_FTOL,
         )
         v = torch.where(torch.isfinite(v), v, torch.full_like(v, torch.inf))
         i = int(v.argmin())

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from pigp_torch.benchmark import METHODS, model_prior, run_benchmark
+from pigp_torch.bench import METHODS, model_prior, run_benchmark
 
 SEEDS = (1, 2)
 MODEL_SEED = 0

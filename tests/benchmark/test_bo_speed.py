@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from pigp_torch.benchmark import BO_DEFAULTS
-from pigp_torch.benchmark.bo_speed import (
+from pigp_torch.bench import BO_DEFAULTS
+from pigp_torch.bench.bo_speed import (
     bo_step_times,
     build_pigp_fast,
     format_table,

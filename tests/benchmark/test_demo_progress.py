@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from pigp_torch.benchmark.demo import DemoSettings, EpochLines, run_demo
+from pigp_torch.bench.demo import DemoSettings, EpochLines, run_demo
 
 
 def _index(lines, start: str) -> int:

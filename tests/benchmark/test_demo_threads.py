@@ -2,7 +2,7 @@
 
 import torch
 
-from pigp_torch.benchmark import demo
+from pigp_torch.bench import demo
 
 
 def test_run_demo_uses_one_thread_and_restores_the_count(monkeypatch):

@@ -11,9 +11,9 @@ pytest.importorskip("distributed")
 
 from distributed import LocalCluster
 
-from pigp_torch.benchmark import METHODS, run_benchmark
-from pigp_torch.benchmark import distributed as distributed_module
-from pigp_torch.benchmark.distributed import LOCAL_START_TIMEOUT, WORKER_ENV, run_on_dask
+from pigp_torch.bench import METHODS, run_benchmark
+from pigp_torch.bench import distributed as distributed_module
+from pigp_torch.bench.distributed import LOCAL_START_TIMEOUT, WORKER_ENV, run_on_dask
 from tests.benchmark.conftest import CHEAP_BO, MODEL_SEED, OPTIMUM_STARTS, SEEDS
 
 TIMING = ["ask_time_s", "eval_time_s"]
@@ -160,7 +160,7 @@ def test_bad_arguments_raise_value_errors():
 def test_run_jobs_here_keeps_job_order_serially_and_on_a_process_pool(capsys):
     """run_jobs without a scheduler: the results of fn in job order, serially and on two
     processes alike; with progress, a bar that counts every job."""
-    from pigp_torch.benchmark.distributed import run_jobs
+    from pigp_torch.bench.distributed import run_jobs
 
     jobs = [-3, 1, -4, 1, -5]
     assert run_jobs(abs, jobs) == [3, 1, 4, 1, 5]

@@ -8,16 +8,16 @@ import pytest
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.benchmark import METHODS
-from pigp_torch.benchmark.families import (
+from pigp_torch.bench import METHODS
+from pigp_torch.bench.families import (
     BACKGROUND_RANGE,
     ERROR_SCALE_RANGE,
     PEAK_RANGE,
     TUNE_SPREAD,
     wide_draw,
 )
-from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
-from pigp_torch.benchmark.protocol import run_benchmark, run_one
+from pigp_torch.bench.machines import benchmark_ring, machine_optimum
+from pigp_torch.bench.protocol import run_benchmark, run_one
 from pigp_torch.data.tables import read_table
 from pigp_torch.simulation.calibration import peak_density
 from pigp_torch.simulation.spec import SPEAR3, RingSpec
@@ -133,7 +133,7 @@ def test_oracle_prior_of_a_wide_machine_is_its_own_peak(wide, tiny_prior):
     """The oracle reads the wide machine as built (re-tuned, drawn error scale): its
     background is the drawn one and its peak height is that of the machine's unconstrained
     optimum, at least the drawn box optimum f*."""
-    from pigp_torch.benchmark.oracle import machine_peak, oracle_prior
+    from pigp_torch.bench.oracle import machine_peak, oracle_prior
     from pigp_torch.machine import SimulatedMachine
     from pigp_torch.methods import RunContext
 

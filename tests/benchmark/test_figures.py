@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pigp_torch.benchmark import plot_prior_mean, plot_runs
+from pigp_torch.bench import plot_prior_mean, plot_runs
 
 N_RUNS, N_METHODS = 10, 5
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from pigp_torch.benchmark import METHODS, machine_optimum, model_prior, run_benchmark, run_one
+from pigp_torch.bench import METHODS, machine_optimum, model_prior, run_benchmark, run_one
 from pigp_torch.simulation import Spear3Coupling
 
 #: Three windings of the ring (cheap 3-D problems: prior and f* in about a second).
@@ -29,7 +29,7 @@ def test_three_knob_benchmark_uses_those_knobs(prior3):
         optimum_starts=2,
     )
     assert list(df.columns[3:6]) == THREE and "01G-QSS1" not in df.columns
-    from pigp_torch.benchmark.protocol import machine_loss_map
+    from pigp_torch.bench.protocol import machine_loss_map
 
     model = Spear3Coupling(1, knobs=THREE)
     sim = Spear3Coupling(1, knobs=THREE, loss_rate_map=machine_loss_map(1, model.loss_rate_map))
@@ -72,7 +72,7 @@ def test_model_prior_with_center_ensemble_on_three_knobs():
 def test_run_benchmark_builds_the_ensemble_only_for_methods_that_use_it(monkeypatch):
     """Machine seeds may not be ensemble seeds (checked before any work), and methods that do
     not read ``center_cov`` never pay for the ensemble."""
-    import pigp_torch.benchmark.protocol as protocol
+    import pigp_torch.bench.protocol as protocol
 
     with pytest.raises(ValueError, match=r"machine seeds \[1002\] are also ensemble seeds"):
         run_benchmark(["pigp-physics"], [1002], progress=False, center_ensemble=3, knobs=THREE)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from pigp_torch.benchmark import mismatch as mm
+from pigp_torch.bench import mismatch as mm
 from pigp_torch.prior import PhysicsPrior
 
 DT = torch.float64

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from pigp_torch.benchmark.oracle import ORACLE, oracle_prior
-from pigp_torch.benchmark.protocol import benchmark_ring
+from pigp_torch.bench.oracle import ORACLE, oracle_prior
+from pigp_torch.bench.protocol import benchmark_ring
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import RunContext
 from pigp_torch.simulation.ensemble import ensemble_optima

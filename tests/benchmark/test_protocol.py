@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 import torch
 
-from pigp_torch.benchmark import METHODS, machine_archive, machine_optimum, run_benchmark, run_seed
+from pigp_torch.bench import METHODS, machine_archive, machine_optimum, run_benchmark, run_seed
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import MethodSpec, resolve_methods
 from pigp_torch.simulation import Spear3Coupling
@@ -56,7 +56,7 @@ def test_scores_are_noise_free(tiny_table):
     """f_true equals the machine's loss_rate (its own loss-rate map) at the logged knobs, f0 the
     skews-off value, and gain_fraction the best-so-far formula; y differs from f_true by the
     0.04 noise."""
-    from pigp_torch.benchmark.protocol import benchmark_ring
+    from pigp_torch.bench.protocol import benchmark_ring
     from pigp_torch.simulation.spec import SPEAR3
 
     for seed in SEEDS:
@@ -131,7 +131,7 @@ def test_a_run_uses_float64_defaults_whatever_the_caller_set(tiny_prior):
     """``import xopt`` switches torch's default dtype to float64 process-wide; a run pins it to
     float64 itself (so a Dask worker and a process that imported Xopt propose the same points)
     and gives the caller's default back afterwards."""
-    from pigp_torch.benchmark import run_one
+    from pigp_torch.bench import run_one
 
     seen = []
     pigp = METHODS["pigp"].with_options(num_restarts=2, raw_samples=32)
@@ -158,7 +158,7 @@ def test_a_run_uses_float64_defaults_whatever_the_caller_set(tiny_prior):
 def test_each_machine_has_its_own_loss_rate_map():
     """A machine's map is drawn from its seed (same in every call), within the protocol's spread
     of the model's constants; the prior's model ring keeps the model's."""
-    from pigp_torch.benchmark.protocol import MAP_SPREAD, benchmark_ring, machine_loss_map
+    from pigp_torch.bench.protocol import MAP_SPREAD, benchmark_ring, machine_loss_map
     from pigp_torch.simulation import LOSS_RATE_MAP
     from pigp_torch.simulation.spec import SPEAR3
 

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pigp_torch.benchmark import first_moves, run_scores, summarize
+from pigp_torch.bench import first_moves, run_scores, summarize
 
 
 def _run(method, seed, f_true, f0=0.5, f_star=1.5):

@@ -195,7 +195,7 @@ def test_a_run_over_channel_access_against_the_simulated_ioc(tmp_path, capsys):
     import torch
 
     from pigp_torch.machine.epics import EpicsMachine
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     start = torch.tensor(list(X_INIT.values()), dtype=torch.float64)
     bounds = torch.tensor([[-0.01, -0.01], [0.01, 0.01]], dtype=torch.float64)
@@ -328,7 +328,7 @@ def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
     the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
     import torch
 
-    from pigp_torch.benchmark.protocol import benchmark_ring
+    from pigp_torch.bench.protocol import benchmark_ring
     from pigp_torch.simulation import Spear3Coupling
     from pigp_torch.simulation.spec import RingSpec
 

@@ -67,7 +67,7 @@ class Probe:
 @pytest.fixture(scope="package")
 def sim_ioc():
     """The shared IOC (ring seed 1, noise 0.04 mA/min, refresh every 50 ms)."""
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     with start_sim_ioc(IOC_SEED, update_period=UPDATE_PERIOD) as handle:
         yield handle

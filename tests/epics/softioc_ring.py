@@ -2,7 +2,7 @@
 runs `pigp optimize` against an IOC other than our own caproto one.
 
 Run as a script (``python tests/epics/softioc_ring.py --put-log FILE --x-init 2.5,-1.25``) with
-the server environment of :func:`pigp_torch.testing.ca_env.server_environment` (127.0.0.1
+the server environment of :func:`pigp_torch.simulated_epics.ca_env.server_environment` (127.0.0.1
 only). Per knob an ``ao`` setpoint ``<knob>:CurrSetpt`` (DRVL/DRVH = the bounds) and an ``ai``
 readback ``<knob>:Curr1`` that follows it at once; ``TEST:BeamLossRate`` (``ai``, LOPR/HOPR
 0..100) is refreshed every 50 ms with

@@ -243,8 +243,8 @@ def test_an_ioc_restarted_during_the_restore_is_ramped_from_its_power_on_setpoin
     initial setpoints (exit 143, end record restored)."""
     from caproto.threading.client import Context
 
-    from pigp_torch.testing.ca_env import client_environment, free_port
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ca_env import client_environment, free_port
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     knobs, start, limit = ["01G-QSS4", "02G-QSS3"], [12.0, -9.0], 0.1 * 30.0
     port = free_port()

@@ -15,8 +15,8 @@ import torch
 from caproto import CaprotoTimeoutError
 
 from pigp_torch.machine import SimulatedMachine
-from pigp_torch.testing import SIM_CA_PORT
-from pigp_torch.testing.ioc import (
+from pigp_torch.simulated_epics import SIM_CA_PORT
+from pigp_torch.simulated_epics.ioc import (
     client_environment,
     free_port,
     patched_environ,
@@ -362,7 +362,7 @@ def test_serve_sim_runs_in_the_foreground_and_stops_on_ctrl_c(tmp_path):
 @pytest.mark.slow  # a Python start with torch and pyAT imports: ~4 s idle, >10 s on a busy host
 def test_start_sim_ioc_reports_a_failed_start():
     """An IOC that exits during start-up: RuntimeError with its log; no process left behind."""
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     with pytest.raises(RuntimeError, match=r"(?s)simulated IOC exited with code 1.*noise must be"):
         with start_sim_ioc(1, noise=-1.0, startup_timeout=60):

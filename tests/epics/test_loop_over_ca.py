@@ -98,7 +98,7 @@ def test_ioc_killed_mid_run(ring, tmp_path):
     acknowledged — the values of the last puts in its own put log — not step 3's setting,
     which was intended (logged as an intent) but never reached it."""
     from pigp_torch.data.runlog import read_log
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     log = tmp_path / "r.jsonl"
     with start_sim_ioc(IOC_SEED, update_period=UPDATE_PERIOD) as handle:

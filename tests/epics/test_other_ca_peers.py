@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pigp_torch.testing.ca_env import client_environment, free_port, server_environment
+from pigp_torch.simulated_epics.ca_env import client_environment, free_port, server_environment
 
 HERE = Path(__file__).parent
 KNOBS = ["01G-QSS4", "02G-QSS3"]

@@ -18,7 +18,11 @@ from pigp_torch import cli
 from pigp_torch.data.runlog import read_log
 from pigp_torch.machine.epics import EpicsMachine
 from pigp_torch.machine.errors import SeverityError
-from pigp_torch.testing import ALARM_KNOB_SUFFIX, ALARM_READINGS_SUFFIX, ALARM_SEVERITY_SUFFIX
+from pigp_torch.simulated_epics import (
+    ALARM_KNOB_SUFFIX,
+    ALARM_READINGS_SUFFIX,
+    ALARM_SEVERITY_SUFFIX,
+)
 
 from .conftest import FAST
 from .test_faults_over_ca import fault_at_read, private_locks, with_optimize  # noqa: F401

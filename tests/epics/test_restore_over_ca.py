@@ -141,8 +141,8 @@ def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(tm
     power-on zeros): the run aborts, the restore retries through the restart (restore_timeout
     30 s) and puts the knobs exactly back at the start (exit 1); caproto's reconnection records
     are one line each (no traceback in stderr)."""
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
     from pigp_torch.simulation import Spear3Coupling
-    from pigp_torch.testing.ioc import start_sim_ioc
 
     from .conftest import Probe
 

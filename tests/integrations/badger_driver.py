@@ -271,7 +271,7 @@ def core(ioc, probe) -> dict:
 
 
 def main() -> None:
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
     pb.setup(startup_hook=False)  # Badger's folders in the fresh HOME, pigp_sim in its plugins
     case = sys.argv[1]

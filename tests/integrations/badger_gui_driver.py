@@ -110,7 +110,7 @@ def main() -> None:
         from caproto.threading.client import Context
 
         from pigp_torch.integrations.badger import SIM_KNOBS
-        from pigp_torch.testing.ioc import start_sim_ioc
+        from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
         start = [round(1.2 * math.cos(2.0 * k), 6) for k in range(len(SIM_KNOBS))]
         with start_sim_ioc(1, update_period=0.05) as ioc:

@@ -24,7 +24,7 @@ DRIVER = textwrap.dedent(
     from badger.routine import Routine
     from badger.core import run_routine
     from xopt.generators import get_generator
-    from pigp_torch.testing.ioc import start_sim_ioc
+    from pigp_torch.simulated_epics.ioc import start_sim_ioc
     from pigp_torch.prior import PhysicsPrior
     from pigp_torch.integrations.xopt_physics import PhysicsGenerator
     from gest_api.vocs import VOCS

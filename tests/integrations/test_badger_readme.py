@@ -25,7 +25,7 @@ def test_the_readme_badger_recipe_on_a_fresh_home(tmp_path, layered_python, fres
     headless pigp_physics routine on pigp_sim against `pigp serve-sim` moves the knobs and ends
     with the IOC's setpoints exactly where they were."""
     import pigp_torch.integrations.badger as pb
-    from pigp_torch.testing.ca_env import client_environment, free_port, patched_environ
+    from pigp_torch.simulated_epics.ca_env import client_environment, free_port, patched_environ
 
     python, env = layered_python, fresh_home_env
     home = Path(env["HOME"])

@@ -18,7 +18,7 @@ from xopt.generators.bayesian.custom_botorch.hessian_kernel import HessianRBF
 from xopt.numerical_optimizer import LBFGSOptimizer
 
 from pigp_torch import optimize
-from pigp_torch.benchmark import RunContext
+from pigp_torch.bench import RunContext
 from pigp_torch.integrations.xopt import (
     PhysicsModelConstructor,
     XoptOptimizer,
@@ -383,7 +383,7 @@ def test_benchmark_specs_build_the_documented_generators(name, beta, travel, pig
 @pytest.mark.slow
 def test_real_ring_prior_through_xopt_pigp():
     """On the 13-knob prior of the model ring: same GP through Xopt, and in-bounds proposals."""
-    from pigp_torch.benchmark import model_prior
+    from pigp_torch.bench import model_prior
     from pigp_torch.simulation import Spear3Coupling
 
     prior = model_prior(0, n_starts=4)

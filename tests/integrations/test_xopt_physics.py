@@ -15,7 +15,7 @@ pytest.importorskip("xopt")
 from xopt import Xopt
 from xopt.evaluator import Evaluator
 
-from pigp_torch.benchmark import METHODS
+from pigp_torch.bench import METHODS
 from pigp_torch.integrations.xopt import vocs_from_prior
 from pigp_torch.integrations.xopt_physics import PhysicsGenerator
 from pigp_torch.prior import PhysicsPrior

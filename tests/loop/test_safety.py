@@ -167,21 +167,17 @@ def test_the_loop_refuses_settings_a_bare_machine_would_accept():
     """A machine with no checks of its own: the loop still refuses a proposal outside the bounds
     (before calling set) and restores the start."""
 
-    class Bare:
+    class Bare(GuardedMachine):  # the protocol's defaults, but a set that checks nothing
         def __init__(self):
-            self.knob_names, self.bounds = ["a", "b"], BOUNDS
-            self.x = torch.zeros(2, dtype=D)
+            super().__init__(BOUNDS, ["a", "b"])
             self.sets = []
 
         def set(self, x):
             self.sets.append(x.clone())
-            self.x = x.clone()
-
-        def get(self):
-            return self.x.clone()
+            self._x = x.clone()
 
         def read(self):
-            return bowl(self.x)
+            return bowl(self._x)
 
     class Escape(Walk):
         def ask(self):
@@ -256,27 +252,23 @@ def test_a_signal_during_the_restore_is_deferred(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ properties
-class Recorder:
-    """A machine with no checks of its own that records every setting it is sent."""
+class Recorder(GuardedMachine):
+    """A machine with no checks of its own (the protocol's defaults, a ``set`` that checks
+    nothing) that records every setting it is sent."""
 
     def __init__(self, bounds, max_step, x_init, f, noise, seed):
-        self.bounds = bounds
-        self.knob_names = [f"k{i}" for i in range(bounds.shape[1])]
+        super().__init__(bounds, [f"k{i}" for i in range(bounds.shape[1])], x_init=x_init)
         self.max_step = max_step
-        self.x = x_init.clone()
         self.sets = [x_init.clone()]
         self.f, self.noise = f, noise
         self.gen = torch.Generator().manual_seed(seed)
 
     def set(self, x):
         self.sets.append(torch.as_tensor(x, dtype=D).clone())
-        self.x = self.sets[-1].clone()
-
-    def get(self):
-        return self.x.clone()
+        self._x = self.sets[-1].clone()
 
     def read(self):
-        return self.f(self.x) + self.noise * float(torch.randn((), generator=self.gen, dtype=D))
+        return self.f(self._x) + self.noise * float(torch.randn((), generator=self.gen, dtype=D))
 
 
 def build(name, bounds, seed):

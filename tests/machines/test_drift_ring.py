@@ -28,7 +28,7 @@ def test_families_listed_and_unknown_refused():
 
 
 def test_theta_is_deterministic_per_seed(machine):
-    from pigp_torch.benchmark.machines import benchmark_ring
+    from pigp_torch.bench.machines import benchmark_ring
     from pigp_torch.simulation.spec import as_ring_spec
 
     sim = benchmark_ring(101, as_ring_spec(None), True)

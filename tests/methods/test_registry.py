@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pigp_torch.benchmark import METHODS as BENCHMARK_METHODS
+from pigp_torch.bench import METHODS as BENCHMARK_METHODS
 from pigp_torch.methods import (
     METHODS,
     MethodSpec,

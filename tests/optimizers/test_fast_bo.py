@@ -13,7 +13,7 @@ from botorch.acquisition import (
 from botorch.acquisition.analytic import _log_ei_helper
 from gpytorch.means import LinearMean
 
-from pigp_torch.benchmark.bo_speed import synthetic_problem
+from pigp_torch.bench.bo_speed import synthetic_problem
 from pigp_torch.models import physics_informed_gp
 from pigp_torch.optimizers import BayesOpt
 from pigp_torch.optimizers.fast_bo import (

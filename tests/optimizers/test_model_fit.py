@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pigp_torch.optimizers.model_fit import FittedModelOptimizer, fit_unknowns
+from pigp_torch.optimizers.model_fit import FittedModelOptimizer, ModelFitSettings, fit_unknowns
 
 D = torch.float64
 
@@ -210,3 +210,43 @@ def test_row_jacobian_of_a_model_for_one_vector_of_unknowns():
     J = torch.autograd.functional.jacobian(lambda t: batched(X, t), theta)
     for model in (one_vector, batched):
         torch.testing.assert_close(row_jacobian(model, X, theta), J, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"obs_sd": 0.0}, r"obs_sd and prior_sd must be > 0, got 0.0, "),
+        ({"obs_sd": 1.0, "prior_sd": -1.0}, r"obs_sd and prior_sd must be > 0, got 1.0, -1.0"),
+        ({"obs_sd": 1.0, "trust": 1.5}, r"trust must lie in \[0.01, 1.0\], got 1.5"),
+        ({"obs_sd": 1.0, "fit_restarts": -1}, "fit_restarts must be >= 0, got -1"),
+        (
+            {"obs_sd": 1.0, "best_from": "luck"},
+            "best_from must be 'readings' or 'model', got 'luck'",
+        ),
+    ],
+)
+def test_settings_are_checked_once_with_one_line_errors(options, message):
+    """A ModelFitSettings out of range is refused when built (one line naming the option), and
+    the optimizer built from keywords refuses the same."""
+    with pytest.raises(ValueError, match=message):
+        ModelFitSettings(**options)
+    box = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
+    parts = {"model": _linear_model, "goal": lambda o: o.sum(-1), "theta_center": [1.0] * 3,
+             "theta_half_width": [1.0] * 3}  # fmt: skip
+    with pytest.raises(ValueError, match=message):
+        FittedModelOptimizer(box, **parts, **options)
+
+
+def test_settings_object_and_keywords_build_the_same_optimizer():
+    """``settings=`` with keywords over it gives the settings the keywords alone give; options
+    nothing set are no longer accepted."""
+    box = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
+    parts = {"model": _linear_model, "goal": lambda o: o.sum(-1), "theta_center": [1.0] * 3,
+             "theta_half_width": [1.0] * 3}  # fmt: skip
+    base = ModelFitSettings(obs_sd=1e-3, seed=7)
+    a = FittedModelOptimizer(box, settings=base, best_from="model", **parts)
+    b = FittedModelOptimizer(box, obs_sd=1e-3, seed=7, best_from="model", **parts)
+    assert a.settings == b.settings == ModelFitSettings(obs_sd=1e-3, seed=7, best_from="model")
+    assert (a.obs_sd, a.seed, a.best_from, a.trust) == (1e-3, 7, "model", 0.25)
+    with pytest.raises(TypeError, match="local_tol"):
+        FittedModelOptimizer(box, obs_sd=1e-3, local_tol=0.1, **parts)

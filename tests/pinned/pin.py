@@ -1,6 +1,6 @@
 r"""Pinned benchmark trajectories: the proposals of the registered methods, to the bit.
 
-A run is :func:`pigp_torch.benchmark.protocol.run_one` (the spear3-13 protocol, the machine's own
+A run is :func:`pigp_torch.bench.protocol.run_one` (the spear3-13 protocol, the machine's own
 loss-rate map, no :math:`f^*` search) with the kept prior ``docs/data/prior_spear3_seed0_surrogate
 .json`` (it has the error-ensemble fields, so ``pigp-physics`` uses them). :data:`RUNS` lists
 ``(method, options, machine seed, budget)``; every evaluated setting and reading is stored as
@@ -52,7 +52,7 @@ def run_key(method: str, options: dict, seed: int, budget: int) -> str:
 
 def trajectory(method: str, options: dict, seed: int, budget: int) -> dict:
     """One run's evaluated settings ``X`` (``budget x d``) and readings ``y`` as hex floats."""
-    from pigp_torch.benchmark.protocol import run_one
+    from pigp_torch.bench.protocol import run_one
     from pigp_torch.methods import METHODS
     from pigp_torch.prior import PhysicsPrior
 

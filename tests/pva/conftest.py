@@ -19,7 +19,7 @@ FAST = {"settle_time": 0.1, "timeout": 0.5, "retry_interval": 0.0}
 @pytest.fixture(scope="package")
 def pva_ring():
     """(server, client configuration) of ring seed 1 with two knobs, refreshed every 50 ms."""
-    from pigp_torch.testing.pva import start_sim_pva
+    from pigp_torch.simulated_epics.pva import start_sim_pva
 
     with start_sim_pva(1, knobs=KNOBS, update_period=UPDATE_PERIOD) as served:
         yield served

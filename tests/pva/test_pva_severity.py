@@ -9,8 +9,8 @@ from pigp_torch import optimize
 from pigp_torch.data.runlog import read_log
 from pigp_torch.machine.pva import PvaMachine
 from pigp_torch.optimizers import NelderMead
-from pigp_torch.testing import ALARM_SEVERITY_SUFFIX
-from pigp_torch.testing.pva import ALARM_POSTS_SUFFIX
+from pigp_torch.simulated_epics import ALARM_SEVERITY_SUFFIX
+from pigp_torch.simulated_epics.pva import ALARM_POSTS_SUFFIX
 
 from .conftest import FAST, KNOBS, setpoints
 

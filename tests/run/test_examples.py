@@ -77,7 +77,7 @@ def test_every_example_passes_the_dry_run(name, capsys, monkeypatch, tmp_path):
     if kind == "epics":
         if importlib.util.find_spec("caproto") is None:
             pytest.skip("the epics extra (caproto) is not installed")
-        from pigp_torch.testing.ioc import start_sim_ioc
+        from pigp_torch.simulated_epics.ioc import start_sim_ioc
 
         with start_sim_ioc(1, update_period=0.05):  # the ring `pigp serve-sim` serves
             out = _dry_run(path, capsys)

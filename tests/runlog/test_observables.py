@@ -11,6 +11,7 @@ import torch
 from pigp_torch.data.runlog import RunLog, read_log, replay
 from pigp_torch.loop import optimize
 from pigp_torch.machine.base import GuardedMachine
+from pigp_torch.optimizers.base import AskTellOptimizer
 
 NAMES = ["mu_x", "sigma_x"]
 
@@ -54,13 +55,13 @@ def test_malformed_observables_are_refused(tmp_path, obs, message):
         read_log(tmp_path / "r.jsonl")
 
 
-class Recorder:
+class Recorder(AskTellOptimizer):
     """A minimal ask/tell optimizer that records what it is told."""
 
     def __init__(self, uses_observables: bool) -> None:
+        super().__init__(torch.tensor([[-1.0], [1.0]], dtype=torch.float64))
         self.uses_observables = uses_observables
         self.told: list[tuple] = []
-        self.dim = 1
 
     def ask(self):
         return torch.tensor([0.1 * len(self.told)], dtype=torch.float64)

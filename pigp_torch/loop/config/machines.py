@@ -54,7 +54,7 @@ class SimMachineConfig(Section):
         loss_map: ``"model"`` (default): the ring's own loss-rate map (SPEAR3's constants);
             ``"benchmark"``: the map that the benchmark and ``pigp demo`` give machine
             ``error_seed`` (background and Touschek scale perturbed per seed,
-            :func:`pigp_torch.benchmark.protocol.machine_loss_map`) — the same machine as the
+            :func:`pigp_torch.bench.protocol.machine_loss_map`) — the same machine as the
             demo's "machine 1" for ``error_seed: 1``.
     """
 

@@ -122,7 +122,7 @@ def machine_header(machine) -> dict:
     the machine has."""
     out = {}
     for key in ("knob_units", "observable_names", "observable_units"):
-        value = getattr(machine, key, None)
+        value = getattr(machine, key)  # declared by the Machine protocol (default None)
         if value is not None:
             out[key] = [str(v) for v in value]
     return out
@@ -223,7 +223,7 @@ class RunSetup:
         if noise is not None:
             return noise
         prior = c.get_prior()
-        noise = getattr(prior, "noise", None)
+        noise = prior.noise if prior is not None else None
         return float(noise) if noise else None
 
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 from pigp_torch.data.runlog import file_sha256
 from pigp_torch.loop.config import ConfigError, RunConfig, config_digest
 from pigp_torch.loop.run.validate import validate_config
-from pigp_torch.machine import SimulatedMachine
 
 
 def check_resume(config: RunConfig, records) -> None:
@@ -75,17 +74,10 @@ def logged_config(records) -> RunConfig:
 def advance_simulated_noise(machine, n_reads: int) -> None:
     r"""Put a fresh simulated machine's noise stream where the logged run left it.
 
-    A :class:`~pigp_torch.machine.SimulatedMachine` draws one normal variate per reading from its
-    seeded generator; taking ``n_reads`` readings (through the public :meth:`read`, the knobs
-    unmoved) moves the stream on exactly as many draws, so a resumed simulated run sees the noise
-    an uninterrupted one would have. A machine kind's simulated machine with more than one draw
-    per reading (the ARES-EA screen: four) says so with ``advance_noise(n_reads)``, which moves
-    its stream on the same way. Other machines are left alone.
+    A simulated machine draws its noise from a seeded generator; ``machine.advance_noise(n_reads)``
+    (the :class:`~pigp_torch.machine.base.Machine` protocol) moves the stream on as ``n_reads``
+    readings would (one normal variate per reading on the ring's
+    :class:`~pigp_torch.machine.SimulatedMachine`, four on the ARES-EA screen), so a resumed
+    simulated run sees the noise an uninterrupted one would have. Other machines do nothing.
     """
-    if isinstance(machine, SimulatedMachine) and machine.noise > 0:
-        for _ in range(int(n_reads)):
-            machine.read()
-        return
-    advance = getattr(machine, "advance_noise", None)
-    if advance is not None:
-        advance(int(n_reads))
+    machine.advance_noise(int(n_reads))

@@ -2,7 +2,8 @@ r"""The ARES-EA benchmark as published: trials × methods, the beam at every ste
 
 One run = one trial (its incoming beam and misalignments, unknown to the method) and one method,
 on an :class:`~.machine.AresMachine` reading the method's objective
-(:func:`~.methods.ares_objective_for`). Step 0 measures the start setting
+(:func:`~.methods.ares_objective_for`), run by the loop every machine runs through
+(:func:`pigp_torch.loop.optimize`: checked moves and readings). Step 0 measures the start setting
 [10, −10, 0, 10, 0]; steps 1 … ``steps − 1`` measure the method's asks; then the knobs are set back
 to the method's best measured setting and the beam is measured once more (row ``step = steps``).
 
@@ -37,6 +38,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pigp_torch.loop import optimize
 from pigp_torch.machines.ares_ea.cases import case_machine_parts, check_case
 from pigp_torch.machines.ares_ea.machine import AresMachine
 from pigp_torch.machines.ares_ea.methods import ares_objective_for
@@ -90,13 +92,6 @@ def check_ares_methods(methods: Sequence[str | MethodSpec]) -> list[MethodSpec]:
         if spec.machine not in (None, "ares-ea"):
             raise ValueError(f"method {spec.name!r} is built for {spec.machine!r}, not ares-ea")
     return specs
-
-
-def _tell(opt, x, y: float, observables: torch.Tensor) -> None:
-    if getattr(opt, "uses_observables", False):
-        opt.tell(x, y, observables=observables)
-    else:
-        opt.tell(x, y)
 
 
 def _trial_machine(trial, spec: MethodSpec, noise: float, seed: int, segment, model_error: str):
@@ -180,17 +175,14 @@ def run_ares_trial(
 
     # Libraries that draw from torch's global generator (BoTorch's hyperparameter fits and
     # acquisition starts) draw the same numbers for the same seed, so a run repeats to the bit;
-    # the caller's generator state is restored afterwards.
+    # the caller's generator state is restored afterwards. The steps are the one loop's
+    # (pigp_torch.loop.optimize), with the readings as they come (no stated noise: no re-reads),
+    # the knobs left where the last step put them; then set back to the method's best.
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         opt = spec.build(ctx)
-        for step in range(int(steps)):
-            if step > 0:
-                machine.set(opt.ask())
-            x = machine.get()
-            y = machine.read()
-            _tell(opt, x, y, machine.last_observables)
-            record(step)
+        optimize(machine, opt, None, int(steps), method=spec.name, restore="none",
+                 handle_signals=False, callback=lambda row: record(int(row["step"])))  # fmt: skip
         x_best, _ = opt.best()
     machine.set(x_best)
     machine.read()

@@ -17,7 +17,7 @@ Everything ring-specific is in this folder:
 
 Its run-file section is ``machine: {kind: sim}``
 (:class:`~pigp_torch.loop.config.SimMachineConfig`), its benchmark the "spear3-13" protocol
-(:func:`pigp_torch.benchmark.run_benchmark`). This module imports nothing heavy (the registry
+(:func:`pigp_torch.bench.run_benchmark`). This module imports nothing heavy (the registry
 imports it to find the kind).
 """
 
@@ -90,8 +90,8 @@ class RingKind(MachineKind):
         return section.noise if section.noise > 0 else None
 
     def benchmark(self, **options: Any):
-        """The "spear3-13" benchmark (:func:`pigp_torch.benchmark.run_benchmark`)."""
-        from pigp_torch.benchmark import run_benchmark
+        """The "spear3-13" benchmark (:func:`pigp_torch.bench.run_benchmark`)."""
+        from pigp_torch.bench import run_benchmark
 
         return run_benchmark(**options)
 

@@ -113,7 +113,7 @@ MAP_SPREAD = {"background": (-0.8, 0.3), "touschek": (-0.3, 0.3)}
 def machine_loss_map(machine_seed: int, model_map, spread=None) -> tuple[float, float]:
     r"""The loss-rate map :math:`(f_\infty (1 + d), g (1 + \epsilon))` of machine
     ``machine_seed`` from the model's map ``(f_inf, g)`` (mA/min, mA/min m²): the benchmark's
-    machines (:mod:`pigp_torch.benchmark.protocol`) and run files with ``loss_map: benchmark``.
+    machines (:mod:`pigp_torch.bench.protocol`) and run files with ``loss_map: benchmark``.
 
     :math:`d` and :math:`\epsilon` are uniform on the ranges of ``spread`` (default
     :data:`MAP_SPREAD`), drawn from a generator seeded by the machine seed alone (the same map

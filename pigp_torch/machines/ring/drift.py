@@ -1,7 +1,7 @@
 r"""Drift families of simulated rings (SPEAR3 by default; docs/drift_families.md).
 
 A machine of a family is the benchmark's machine ``seed`` (its own errors and loss-rate map,
-:func:`~pigp_torch.benchmark.machines.benchmark_ring`) seen through its machine model
+:func:`~pigp_torch.bench.machines.benchmark_ring`) seen through its machine model
 (:func:`~.model.ring_machine_model`: the fast linear model, differentiable) with unknowns that
 change with the reading count :math:`t`:
 
@@ -185,7 +185,7 @@ def ring_drift_machine(
 ) -> RingDriftMachine:
     """Machine ``seed`` of ``ring`` (default SPEAR3) with its own loss-rate map, drifting as
     ``family`` with draws of ``draw_seed`` (default ``seed``); noise seed ``seed``."""
-    from pigp_torch.benchmark.machines import benchmark_ring
+    from pigp_torch.bench.machines import benchmark_ring
     from pigp_torch.machines.ring.spec import as_ring_spec
 
     sim = benchmark_ring(int(seed), as_ring_spec(ring), True)

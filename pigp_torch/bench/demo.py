@@ -1,7 +1,7 @@
 r"""The ``pigp demo`` pipeline: the main job end to end on the embedded simulated ring.
 
 Simulated data of a model ring -> surrogate -> physics prior (cached between runs,
-:mod:`~pigp_torch.benchmark.demo_cache`) -> the prior's error ensemble for the methods that use
+:mod:`~pigp_torch.bench.demo_cache`) -> the prior's error ensemble for the methods that use
 it -> each method on a simulated machine with another error seed, scored as in the benchmark.
 """
 
@@ -20,13 +20,13 @@ from pigp_torch._utils.pool import (
     one_torch_thread,
     spread,
 )
-from pigp_torch.benchmark.demo_cache import (
+from pigp_torch.bench.demo_cache import (
     DemoCache,
     apply_cached_ensemble,
     default_cache_dir,
     ensemble_key,
 )
-from pigp_torch.benchmark.protocol import machine_loss_map, run_one
+from pigp_torch.bench.protocol import machine_loss_map, run_one
 from pigp_torch.data.sampling import generate_dataset
 from pigp_torch.loop.progress import reporting_spec
 from pigp_torch.methods import METHODS
@@ -87,7 +87,7 @@ def print_reports(reports) -> None:
 
 def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     r"""Run the demo pipeline, printing its stages; returns the scored runs of every method (one
-    table, :func:`~pigp_torch.benchmark.run_one`'s columns) and the physics prior used.
+    table, :func:`~pigp_torch.bench.run_one`'s columns) and the physics prior used.
 
     It runs on one torch thread (restored afterwards), as the benchmark's runs do: a GP step is
     many small linear-algebra calls, and two OpenMP threads on a busy two-core machine spend

@@ -1,6 +1,6 @@
 r"""The simulated ring served over EPICS 7 pvAccess (a ``p4p`` server on 127.0.0.1).
 
-The pvAccess twin of :mod:`pigp_torch.testing.ioc`, for tests and demos of
+The pvAccess twin of :mod:`pigp_torch.simulated_epics.ioc`, for tests and demos of
 :class:`~pigp_torch.machine.pva.PvaMachine`: the same PV names, all ``NTScalar`` doubles (the
 switches too):
 
@@ -43,7 +43,7 @@ import torch
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
-from pigp_torch.testing import (
+from pigp_torch.simulated_epics import (
     ALARM_KNOB_SUFFIX,
     ALARM_SEVERITY_SUFFIX,
     DEFAULT_PREFIX,
@@ -60,9 +60,9 @@ ALARM_POSTS_SUFFIX = "Sim:AlarmPosts"
 
 
 def free_udp_tcp_ports(n: int = 2, attempts: int = 50) -> list[int]:
-    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.testing.
+    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.simulated_epics.
     free_ports`)."""
-    from pigp_torch.testing import free_ports
+    from pigp_torch.simulated_epics import free_ports
 
     return free_ports(n, attempts)
 

@@ -3,14 +3,14 @@ r"""Families of benchmark machines: which SPEAR3 rings the spear3-13 protocol dr
 * ``"project"`` (default): machine ``s`` is the user deck sp3v82 with the coupling errors of
   seed ``s``, their scale calibrated to skews-off :math:`\epsilon_y/\epsilon_x` = 0.71 %, and its
   own loss-rate map around the model's (:func:`~pigp_torch.simulation.calibration
-  .machine_loss_map`). Built by :func:`~pigp_torch.benchmark.machines.benchmark_ring`.
+  .machine_loss_map`). Built by :func:`~pigp_torch.bench.machines.benchmark_ring`.
 * ``"wide"``: machines that vary as much as real rings do. Machine ``s`` draws, from a numpy
   generator seeded by ``(s, WIDE_STREAM)`` (the same machine in every method and process), in
   this order:
 
   - tune offsets :math:`\Delta\nu_x, \Delta\nu_y \sim U[-0.02, 0.02]` (independent); the ideal
     deck is re-tuned by them with the QF and QD families
-    (:func:`~pigp_torch.benchmark.mismatch.retuned_lattice`), then the errors of seed ``s`` are
+    (:func:`~pigp_torch.bench.mismatch.retuned_lattice`), then the errors of seed ``s`` are
     applied;
   - the global error scale :math:`s_e \sim U[` :data:`ERROR_SCALE_RANGE` :math:`]` (the least
     and largest calibrated scale of the 40 ensemble rings; dimensionless, 1 = nominal rms
@@ -134,7 +134,7 @@ def wide_machine(machine_seed: int, ring: RingSpec) -> RingCoupling:
     Raises:
         ValueError: ``ring`` is not the SPEAR3 user deck.
     """
-    from pigp_torch.benchmark.mismatch import retuned_lattice
+    from pigp_torch.bench.mismatch import retuned_lattice
     from pigp_torch.simulation.calibration import peak_density
 
     check_wide_ring(ring)

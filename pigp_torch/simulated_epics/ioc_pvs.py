@@ -57,7 +57,7 @@ a setpoint (after the control limits) is appended to that file as a JSON line
 ``{"pv", "knob", "value", "previous", "time"}`` — ``previous`` is the setpoint before the put,
 so ``|value - previous|`` is the step the IOC was asked for — and an IOC reboot as
 ``{"reboot": true, "time"}``. Tests read it (:meth:`SimIOCProcess.puts
-<pigp_torch.testing.ioc_process.SimIOCProcess.puts>`) to check what the IOC received,
+<pigp_torch.simulated_epics.ioc_process.SimIOCProcess.puts>`) to check what the IOC received,
 independently of the client.
 
 The loss-rate PV has display limits ``LOPR``/``HOPR`` = ``LOSS_RATE_LIMITS`` ([0, 100] mA/min),

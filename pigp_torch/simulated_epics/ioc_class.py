@@ -1,6 +1,7 @@
 """The PVs of the simulated ring IOC as a class: :func:`sim_ioc_class` adds one setpoint and one
 readback PV per knob, the loss rate and the switches (the table in
-:mod:`~pigp_torch.testing.ioc_pvs`) to :class:`~pigp_torch.testing.ioc_pvs.SimRingIOC`."""
+:mod:`~pigp_torch.simulated_epics.ioc_pvs`) to
+:class:`~pigp_torch.simulated_epics.ioc_pvs.SimRingIOC`."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from caproto.server import pvproperty
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
-from pigp_torch.testing import (
+from pigp_torch.simulated_epics import (
     ALARM_KNOB_SUFFIX,
     ALARM_READINGS_SUFFIX,
     ALARM_SEVERITY_SUFFIX,
@@ -33,7 +34,7 @@ from pigp_torch.testing import (
     STALL_PUTS_SUFFIX,
     STUCK_KNOB_SUFFIX,
 )
-from pigp_torch.testing.ioc_pvs import SimRingIOC
+from pigp_torch.simulated_epics.ioc_pvs import SimRingIOC
 
 
 async def _put_alarm_knob(group, instance, value):
@@ -210,7 +211,7 @@ def sim_ioc_class(
 
 
 def _add_alarm_switches(attrs: dict, prefix: str, d: int) -> None:
-    """The severity hooks (module table of :mod:`~pigp_torch.testing.ioc_pvs`): the severity
+    """The severity hooks (module table of :mod:`~pigp_torch.simulated_epics.ioc_pvs`): the severity
     served, on how many loss-rate reads (-1: every one), on which knob's readback."""
     alarms = (
         ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 0, 3,

@@ -1,10 +1,10 @@
 r"""A simulated ring (SPEAR3 by default) served over EPICS Channel Access (a caproto IOC): building
 the IOC (:func:`make_sim_ioc`), serving it (:func:`serve`, ``pigp serve-sim``, ``python -m
-pigp_torch.testing.ioc``).
+pigp_torch.simulated_epics.ioc``).
 
-The PVs and their meaning: :mod:`~pigp_torch.testing.ioc_pvs`; the environment:
-:mod:`~pigp_torch.testing.ca_env`; the subprocess launcher for tests:
-:mod:`~pigp_torch.testing.ioc_process`.
+The PVs and their meaning: :mod:`~pigp_torch.simulated_epics.ioc_pvs`; the environment:
+:mod:`~pigp_torch.simulated_epics.ca_env`; the subprocess launcher for tests:
+:mod:`~pigp_torch.simulated_epics.ioc_process`.
 """
 
 from __future__ import annotations
@@ -16,22 +16,22 @@ import sys
 
 import torch
 
-from pigp_torch.testing import (
+from pigp_torch.simulated_epics import (
     DEFAULT_PREFIX,
     LOOPBACK,
     SIM_CA_PORT,
     add_ioc_arguments,
 )
-from pigp_torch.testing.ca_env import (
+from pigp_torch.simulated_epics.ca_env import (
     READY_MESSAGE,
     client_environment,
     free_port,
     patched_environ,
     server_environment,
 )
-from pigp_torch.testing.ioc_class import sim_ioc_class
-from pigp_torch.testing.ioc_process import SimIOCProcess, start_sim_ioc
-from pigp_torch.testing.ioc_pvs import SimRingIOC
+from pigp_torch.simulated_epics.ioc_class import sim_ioc_class
+from pigp_torch.simulated_epics.ioc_process import SimIOCProcess, start_sim_ioc
+from pigp_torch.simulated_epics.ioc_pvs import SimRingIOC
 
 __all__ = [
     "READY_MESSAGE",
@@ -141,8 +141,8 @@ def serve(ioc: SimRingIOC, port: int = SIM_CA_PORT, *, log_pv_names: bool = True
 
 
 def sim_ioc_from_args(args, ring=None):
-    """The IOC described by the options of :func:`pigp_torch.testing.add_ioc_arguments` and the
-    ring ``ring`` (a :class:`~pigp_torch.simulation.spec.RingSpec` or its
+    """The IOC described by the options of :func:`pigp_torch.simulated_epics.add_ioc_arguments`
+    and the ring ``ring`` (a :class:`~pigp_torch.simulation.spec.RingSpec` or its
     :meth:`~pigp_torch.simulation.spec.RingSpec.to_dict` form; default: ``args.ring``, that form
     as JSON text, else SPEAR3 with the 13 knobs of the study)."""
     import json
@@ -162,12 +162,13 @@ def sim_ioc_from_args(args, ring=None):
 
 
 def main(argv=None) -> int:
-    """``python -m pigp_torch.testing.ioc``: serve the simulated ring (options as ``serve-sim``)."""
+    """``python -m pigp_torch.simulated_epics.ioc``: serve the simulated ring (options as
+    ``serve-sim``)."""
     import argparse
 
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(
-        prog="python -m pigp_torch.testing.ioc",
+        prog="python -m pigp_torch.simulated_epics.ioc",
         description="Serve a simulated ring (SPEAR3 by default) over EPICS Channel Access on "
         "127.0.0.1.",
     )

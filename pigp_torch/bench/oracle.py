@@ -7,7 +7,7 @@ background :math:`f_\infty` and peak height :math:`f(\boldsymbol\mu)` (so the pr
 :math:`\log c` is centred on the truth), and the model's prior on where the centre lies (the
 centre itself stays unknown). The gap between it and ``pigp-physics`` on the same machines is
 what the model's prior costs. It reads the machine from the run (``ctx.machine.sim``), so it
-works on either machine family (:mod:`~pigp_torch.benchmark.families`).
+works on either machine family (:mod:`~pigp_torch.bench.families`).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
   them; no lattice model knows them). ``machine_maps=False`` gives every machine the model's.
   This is the ``"project"`` family of machines (the default); ``family="wide"`` draws machines
   that vary as much as real rings (tunes, error scale, peak and background per machine;
-  :mod:`~pigp_torch.benchmark.families`). Every run table carries a ``family`` column.
+  :mod:`~pigp_torch.bench.families`). Every run table carries a ``family`` column.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
   with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors),
   with the same knob set as the machines (``knobs="paper13"``: the 13 windings of the paper;
@@ -25,7 +25,7 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
 Seeds. The machine's noise stream is seeded by the machine seed alone (common random numbers:
 every method sees the same noise sequence on a machine); the optimizer (and, for ML-II, the
 archive) by a stable hash of ``(method name, machine seed)``. Runs are independent, so a process
-pool, or a Dask cluster (:mod:`~pigp_torch.benchmark.distributed`), gives the same table as a
+pool, or a Dask cluster (:mod:`~pigp_torch.bench.distributed`), gives the same table as a
 serial loop.
 """
 
@@ -39,15 +39,15 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE, default_dtype
-from pigp_torch.benchmark.archive import machine_archive
-from pigp_torch.benchmark.distributed import check_scheduler, run_jobs
-from pigp_torch.benchmark.families import check_machines
-from pigp_torch.benchmark.machines import (
+from pigp_torch.bench.archive import machine_archive
+from pigp_torch.bench.distributed import check_scheduler, run_jobs
+from pigp_torch.bench.families import check_machines
+from pigp_torch.bench.machines import (
     _maps_key,
     benchmark_ring,
     machine_optimum,
 )
-from pigp_torch.benchmark.scoring import score_run
+from pigp_torch.bench.scoring import score_run
 from pigp_torch.loop import optimize
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
@@ -104,7 +104,7 @@ def model_prior(
     ``progress`` prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
 
     ``model``: a model ring built elsewhere (e.g. re-tuned, see
-    :mod:`~pigp_torch.benchmark.mismatch`) instead of ``ring.build(model_seed)``; its ensemble
+    :mod:`~pigp_torch.bench.mismatch`) instead of ``ring.build(model_seed)``; its ensemble
     rings are its own lattice with the ensemble's error seeds.
     """
     if model is None:
@@ -166,7 +166,7 @@ def run_one(
 
     The machine has its own loss-rate map (:func:`machine_loss_map`) unless ``machine_maps`` is
     false; the prior always has the model's. ``family``: ``"project"`` (default) or ``"wide"``
-    (:func:`~pigp_torch.benchmark.machines.benchmark_ring`).
+    (:func:`~pigp_torch.bench.machines.benchmark_ring`).
 
     ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
     The run executes with torch's default dtype set to float64 (the caller's is restored): BoTorch
@@ -205,7 +205,7 @@ def run_one(
         table = optimize(machine, optimizer, x0, budget, method=spec.name, restore="none")
         table.insert(1, "machine_seed", int(machine_seed))
         notes = {}  # the optimizer's notices, on the row of the step whose ask made them
-        for n in getattr(optimizer, "notices", ()):
+        for n in optimizer.notices:
             notes.setdefault(int(n["at_told"]), n["kind"])
         table["notice"] = [notes.get(int(s), "") for s in table["step"]]
         if int(optimum_starts) == 0:  # no f* search: f_star, gain_fraction NaN
@@ -266,7 +266,7 @@ def run_benchmark(
             ``"all72"`` or winding names); overrides ``ring``'s.
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
             scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
-            127.0.0.1): one Dask task per run (:mod:`~pigp_torch.benchmark.distributed`).
+            127.0.0.1): one Dask task per run (:mod:`~pigp_torch.bench.distributed`).
         center_ensemble: when the prior is computed here, the number of further model rings
             whose optima give its ``center_cov`` (:func:`model_prior`; 0: none).
         ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
@@ -308,7 +308,7 @@ def run_benchmark(
 
 def _run_all(specs, seeds, prior, budgets, shared, scheduler, n_workers, progress):
     """One job per (method, machine seed), run by
-    :func:`~pigp_torch.benchmark.distributed.run_jobs`; their tables, concatenated in job order
+    :func:`~pigp_torch.bench.distributed.run_jobs`; their tables, concatenated in job order
     with ``method, machine_seed, step`` first."""
     jobs = [
         (spec, seed, prior, {"budget": int(budgets[spec.budget]), **shared})

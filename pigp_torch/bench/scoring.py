@@ -50,7 +50,7 @@ def run_scores(
     ``at``, final best.
 
     Args:
-        df: table of :func:`~pigp_torch.benchmark.run_benchmark` (or with its score columns).
+        df: table of :func:`~pigp_torch.bench.run_benchmark` (or with its score columns).
         fraction: :math:`p` of steps-to-:math:`p`, in (0, 1].
         at: evaluation counts for ``gain_<n>`` columns.
         noise: :math:`\sigma_n` of the steps-to-within criterion (mA/min).

@@ -1,13 +1,13 @@
 r"""The benchmark's machines: machine ``s`` of a ring with its own loss-rate map
 (:func:`benchmark_ring`) and its true optimum :math:`f^*` (:func:`machine_optimum`, cached per
 process), of the ``"project"`` family (default) or the ``"wide"`` one
-(:mod:`~pigp_torch.benchmark.families`). The protocol that runs methods on them:
-:mod:`pigp_torch.benchmark.protocol`.
+(:mod:`~pigp_torch.bench.families`). The protocol that runs methods on them:
+:mod:`pigp_torch.bench.protocol`.
 """
 
 from __future__ import annotations
 
-from pigp_torch.benchmark.families import check_family, check_wide_ring, wide_machine
+from pigp_torch.bench.families import check_family, check_wide_ring, wide_machine
 from pigp_torch.simulation.calibration import machine_loss_map
 from pigp_torch.simulation.ring import RingCoupling
 from pigp_torch.simulation.spec import RingSpec, as_ring_spec
@@ -35,7 +35,7 @@ def benchmark_ring(
     file is built by :func:`pigp_torch.loop.run.build_machine`.
 
     ``family="wide"``: the machine of the wide family
-    (:func:`~pigp_torch.benchmark.families.wide_machine`: re-tuned deck, drawn error scale, peak
+    (:func:`~pigp_torch.bench.families.wide_machine`: re-tuned deck, drawn error scale, peak
     and background); it draws its own map, so ``machine_maps`` must be ``True``.
 
     Raises:

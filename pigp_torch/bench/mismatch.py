@@ -2,7 +2,7 @@ r"""The mismatch suite: priors built from a model that the machines are not.
 
 Every case is a :class:`Case`: a name, the prior the optimizer is given (from the model, never
 from a machine), method options it implies (a shifted centre prior) and the machines' loss-rate
-maps. The machines are the benchmark's (:func:`~pigp_torch.benchmark.protocol.run_benchmark`);
+maps. The machines are the benchmark's (:func:`~pigp_torch.bench.protocol.run_benchmark`);
 only the prior, or the machines' loss-rate map, is wrong.
 
 Cases (:func:`cases`):
