@@ -7,7 +7,7 @@ Everything ring-specific is in this folder:
   in ``data/`` with their provenance), lattices and knobs (:mod:`.lattice`), the seeded coupling
   errors (:mod:`.errors`), the fast batched differentiable model (:mod:`.linear_model`,
   :mod:`.lyapunov`), the pyAT reference path (:mod:`.reference`), the calibrations
-  (:mod:`.calibration`), any ring (:class:`.coupling.RingCoupling`) and SPEAR3 in amps
+  (:mod:`.calibration`), any ring (:class:`.ring.RingCoupling`) and SPEAR3 in amps
   (:class:`.spear3.Spear3Coupling`), a ring as plain data (:class:`.spec.RingSpec`), the error
   ensemble of optima (:mod:`.ensemble`) and the model's throughput (:mod:`.throughput`);
   :mod:`pigp_torch.simulation` keeps the old import paths as aliases;

@@ -60,7 +60,7 @@ def calibrate_loss_rate_map(
     sim, off: float = 0.5, best: float = 1.7, min_background_share: float = MIN_BACKGROUND_SHARE
 ):
     r"""``(f_inf, g)`` of ``loss_rate = f_inf + g ⟨1/(σxσy)⟩`` for ``sim`` (a
-    :class:`~pigp_torch.machines.ring.coupling.RingCoupling`): ``off`` mA/min with the knobs at
+    :class:`~pigp_torch.machines.ring.ring.RingCoupling`): ``off`` mA/min with the knobs at
     zero, and ``best`` mA/min at its optimum where the ring's knobs can reach that.
 
     With :math:`p_0 = ⟨1/(σ_xσ_y)⟩` at zero knobs and :math:`p^*` its maximum in the knob box,

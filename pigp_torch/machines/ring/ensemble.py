@@ -6,7 +6,7 @@ machine: the optics decide which resonance driving terms the errors excite and h
 cancel them.
 
 :func:`ensemble_optima` computes the optima and the peak's shape at each, for any
-:class:`~pigp_torch.machines.ring.coupling.RingCoupling` (its lattice, knobs and calibration
+:class:`~pigp_torch.machines.ring.ring.RingCoupling` (its lattice, knobs and calibration
 with other error seeds); :func:`center_covariance` the optima's second moment about the nominal
 setting (zero knobs: the error model is symmetric, so the mean is zero up to sampling noise) and
 :func:`mean_shape` the mean shape. They are the ``center_cov`` and ``peak_shape`` of a
@@ -24,7 +24,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils.multistart import find_optimum
-from pigp_torch.machines.ring.coupling import RingCoupling
+from pigp_torch.machines.ring.ring import RingCoupling
 from pigp_torch.machines.ring.spear3 import Spear3Coupling
 from pigp_torch.prior.peak_shape import excess_derivatives, mean_shape
 from pigp_torch.prior.peak_shape import peak_shape_at as generic_peak_shape_at
@@ -156,7 +156,7 @@ def ensemble_optima(
 
     Args:
         seeds: error seeds of the model rings.
-        model: the ring (any :class:`~pigp_torch.machines.ring.coupling.RingCoupling`); ring
+        model: the ring (any :class:`~pigp_torch.machines.ring.ring.RingCoupling`); ring
             ``s`` is ``model.with_seed(s)``. Default:
             ``Spear3Coupling(knobs=knobs, optics=optics)``.
         knobs, optics: of the default SPEAR3 model.

@@ -1,8 +1,8 @@
 r"""A storage ring as a :class:`~pigp_torch.prior.machine_model.MachineModel`.
 
-The simulated ring (:class:`~pigp_torch.machines.ring.coupling.RingCoupling`, SPEAR3 or any
+The simulated ring (:class:`~pigp_torch.machines.ring.ring.RingCoupling`, SPEAR3 or any
 lattice) is seen through the fast linear model
-(:meth:`~pigp_torch.machines.ring.coupling.RingCoupling.evaluate`: batched and differentiable in
+(:meth:`~pigp_torch.machines.ring.ring.RingCoupling.evaluate`: batched and differentiable in
 the knobs):
 
 * **knobs** :math:`x \in \mathbb R^K`: the skew windings (control units, A for SPEAR3), bounds
@@ -28,7 +28,7 @@ the knobs):
 
 At the centre of the unknowns (:math:`\delta = 0, d = e = 0`) ``observe`` is the model ring's own
 ``evaluate``, so the paper's prior of this model is the one the benchmark computes from
-:meth:`~pigp_torch.machines.ring.coupling.RingCoupling.loss_rate`.
+:meth:`~pigp_torch.machines.ring.ring.RingCoupling.loss_rate`.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ LOSS_MAP_HALF_WIDTH: tuple[float, float] = (0.8, 0.3)
 
 
 def ring_machine_model(sim, coupling_half_width: float | Tensor | None = None) -> MachineModel:
-    r"""The ring ``sim`` (:class:`~pigp_torch.machines.ring.coupling.RingCoupling`) as a
+    r"""The ring ``sim`` (:class:`~pigp_torch.machines.ring.ring.RingCoupling`) as a
     machine model (module docstring).
 
     Args:

@@ -32,7 +32,7 @@ def simulated_ring(config: RunConfig):
     :meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec` — the SPEAR3 deck ``optics`` with
     the run's windings (:class:`~pigp_torch.machines.ring.spear3.Spear3Coupling`), or, with
     ``machine.lattice``, that lattice file with the run's knobs as element names
-    (:class:`~pigp_torch.machines.ring.coupling.RingCoupling`, calibration
+    (:class:`~pigp_torch.machines.ring.ring.RingCoupling`, calibration
     ``machine.knob_calibration``, range ``±machine.knob_limit`` in ``knob_unit``); with
     ``machine.loss_map: benchmark`` the loss-rate map that the benchmark gives machine
     ``error_seed`` (:func:`~pigp_torch.machines.ring.calibration.machine_loss_map` of the ring's

@@ -23,7 +23,7 @@ recomputes it; a test checks it still holds).
 from __future__ import annotations
 
 from pigp_torch.machines.ring import deck as _deck
-from pigp_torch.machines.ring.coupling import TARGET_RATIO, RingCoupling
+from pigp_torch.machines.ring.ring import TARGET_RATIO, RingCoupling
 
 #: K1s per amp of a SPEAR3 skew winding, 1/(m² A) (multiply by the sextupole length for K1s·L)
 SKEW_K_PER_A_M2 = 0.00245246
@@ -87,7 +87,7 @@ class Spear3Coupling(RingCoupling):
         loss_rate_map: ``(f_inf, g)``; default :data:`LOSS_RATE_MAP`.
 
     Knob values are currents in amps, float64, ``(N, K)`` or ``(K,)``; ``bounds`` is ±30 A.
-    Everything else is :class:`~pigp_torch.machines.ring.coupling.RingCoupling`.
+    Everything else is :class:`~pigp_torch.machines.ring.ring.RingCoupling`.
     """
 
     def __init__(

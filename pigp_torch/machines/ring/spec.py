@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from pigp_torch.machines.ring.coupling import RingCoupling
+from pigp_torch.machines.ring.ring import RingCoupling
 from pigp_torch.machines.ring.spear3 import KNOB_LIMIT_A, Spear3Coupling
 
 
