@@ -137,22 +137,14 @@ def _run_report(path, records, noise, fit, say) -> dict:
     objective_unit, unit = logged_units(h)
     true = optimum = None
     sigma = noise
-    if config is not None and config.machine.kind == "sim":
-        from pigp_torch.loop.run import build_machine
-
-        say(f"building the simulated ring (error seed {config.machine.error_seed}) ...")
-        machine = build_machine(config)
-        sigma = float(config.machine.noise)
-        true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
-        if maximize and bounds is not None:
+    truth = _true_objective(config, say)
+    if truth is not None:
+        sigma = sigma if truth.noise is None else truth.noise
+        true = torch.as_tensor(truth.values(X), dtype=DTYPE)
+        if truth.peak is not None and maximize and bounds is not None:
             say(f"searching its true optimum within the run's bounds (L-BFGS-B from the run's "
                 f"{min(OPTIMUM_STARTS, len(X))} best settings) ...")  # fmt: skip
-            optimum = _true_optimum(machine, bounds, X, true)
-    elif config is not None and config.machine.kind == "ares-sim":
-        from pigp_torch.loop.run import build_machine
-
-        machine = build_machine(config)  # the simulated linac: its objective of the true beam
-        true = machine.objective_of(machine.true_observables(X)).to(DTYPE)
+            optimum = _true_optimum(truth.peak, bounds, X, true)
     elif config is not None and config.prior is not None and sigma is None:
         from pigp_torch.prior import PhysicsPrior
 
@@ -194,8 +186,19 @@ def _run_report(path, records, noise, fit, say) -> dict:
 OPTIMUM_STARTS = 3
 
 
-def _true_optimum(machine, bounds: torch.Tensor, X: torch.Tensor, true: torch.Tensor):
-    """The simulated machine's largest noise-free value within the run's ``bounds``: L-BFGS-B
+def _true_objective(config, say):
+    """The noise-free objective of the run's simulated machine, from its machine kind
+    (:meth:`~pigp_torch.machines.MachineKind.true_objective`); ``None`` without one (a live
+    machine, or a log without its configuration)."""
+    from pigp_torch.loop.run import machine_kind
+
+    kind = None if config is None else machine_kind(config)
+    return None if kind is None else kind.true_objective(config, say)
+
+
+def _true_optimum(peak, bounds: torch.Tensor, X: torch.Tensor, true: torch.Tensor):
+    """The largest value of the simulated machine's differentiable noise-free objective
+    ``peak`` within the run's ``bounds``: L-BFGS-B
     (:func:`~pigp_torch._utils.multistart.find_optimum`) from the :data:`OPTIMUM_STARTS`
     settings of the run (``X``, ``n x d``) with the largest noise-free values ``true`` (``n``).
 
@@ -209,11 +212,8 @@ def _true_optimum(machine, bounds: torch.Tensor, X: torch.Tensor, true: torch.Te
     """
     from pigp_torch._utils.multistart import find_optimum
 
-    def f(x):
-        return machine.sim.sim.loss_rate(x)  # the _BoundedSim's ring (differentiable)
-
     best = true.argsort(descending=True)[:OPTIMUM_STARTS]
-    return find_optimum(f, bounds, n_starts=0, x_init=X[best])
+    return find_optimum(peak, bounds, n_starts=0, x_init=X[best])
 
 
 def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
