@@ -21,6 +21,16 @@ reads near the fitted peak, where the form is flat and says little about where t
 multi-start L-BFGS-B (:class:`~pigp_torch.optimizers.bo.MultiStartLBFGSB`: Sobol points of the
 box, the box centre and the fitted centre projected into it) and the trust box with an optional
 travel limit (:class:`~pigp_torch.optimizers.bo.TrustRegion`).
+
+A machine that drifts is followed by itself (no option): the posterior's learned memory
+(:class:`~pigp_torch.models.forgetting.Forgetting`) inflates old readings' noise variance by
+:math:`e^{\mathrm{age}/\tau}` with :math:`\tau` chosen by the predictive likelihood of recent
+readings (:math:`\infty`, every reading for good, on a static machine: its runs are unchanged),
+and restarts the memory at a step found by a CUSUM of the innovations. While it follows a drift
+the fitted centre and height move with the machine, the trust box sits at the told point of
+highest *current* posterior mean, and every third ask re-measures the fitted optimum
+(``track_schedule``). :meth:`PhysicsModelBO.recommend` is the fitted optimum now and
+:meth:`PhysicsModelBO.tracked` the fitted peak, the centre's travel and the memory.
 """
 
 from __future__ import annotations
