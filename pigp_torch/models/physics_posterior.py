@@ -217,9 +217,12 @@ class PhysicsFormPosterior(PosteriorBase):
         n_evidence = n_misfit if self.evidence_from is None else self.evidence_from
         if self.stage == last or len(Y) < min(n_misfit, n_evidence):
             return
-        # The misfit (and its reported z) only from p + 5 readings, where its test applies.
+        # The misfit (and its reported z) only from p + 5 readings, where its test applies;
+        # with forgetting, p + 5 remembered ones (the sum of the weights).
+        w = self.model.weights
+        n_kept = len(Y) if w is None else float(w.sum())
         z = chi2 = nu = None
-        if len(Y) >= n_misfit:
+        if n_kept >= n_misfit:
             z, chi2, nu = self.misfit(X, Y)
             self.misfit_z = z
         target, reasons, fitted = None, [], set()
@@ -251,7 +254,7 @@ class PhysicsFormPosterior(PosteriorBase):
         self.model, self.stage = model, target
         self._alternatives = {k: v for k, v in self._alternatives.items() if k > target}
         z_after, chi2_after, nu_after = self.misfit(X, Y)
-        if len(Y) >= n_misfit:
+        if n_kept >= n_misfit:
             self.misfit_z = z_after
         freed = describe_stage(self.relax[target - 1])
         self._notices.append(

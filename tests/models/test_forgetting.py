@@ -165,3 +165,25 @@ def test_a_drifting_machine_is_followed_where_the_fixed_memory_loses_it(prior):
     assert tracked["peak"][1] == "mA/min" and tracked["centre_moved"][1] == "A"
     assert tracked["remembered"][0] < 100 and tracked["centre_moved"][0] > 0
     torch.testing.assert_close(bo.recommend(), bo.model.box_optimum()[0])
+
+
+def test_the_misfit_test_counts_the_remembered_readings(prior):
+    """With a memory of 10 readings the fit remembers sum(w) ~ 10.5 < p + 5 = 12 readings: the
+    prior check's misfit test (chi2 on nu = sum(w) - p) does not run, where on all 80 readings
+    (no forgetting) the same far-off readings reject the prior."""
+    from pigp_torch.models.physics_posterior import PhysicsFormPosterior
+
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    theta = true_theta(model, [0.002, -0.001, 0.0, 0.001, 0.0], 0.7, 1.0)
+    X, Y = _readings(model, theta, 80, seed=2)
+    Y = Y + 0.3 * torch.sin(X[:, 0] / 0.002)  # a ripple the form cannot fit
+    kept, plain = (
+        PhysicsFormPosterior(prior, prior.bounds, forgetting=f, evidence_from=1000)  # misfit only
+        for f in ({"start": 1000}, False)  # no check of tau: it stays at the one set here
+    )
+    kept.forgetting.tau = 10.0
+    kept.fit(X, Y)
+    plain.fit(X, Y)
+    assert float(kept.model.weights.sum()) < kept.model.n_params + 5
+    assert kept.misfit_z is None and kept.stage == 0
+    assert plain.misfit_z > plain.check_z and plain.stage == len(plain.relax)
