@@ -24,13 +24,14 @@ SPEAR3 seeds 1-24 are held out and need ``--held-out`` (report runs, never tunin
 The compared methods of a drifting machine: ``nelder-mead-restart`` (re-measured best, restart
 every 50 readings), ``xopt-tdbo`` (Xopt's time-dependent UCB on the reading clock), ``ml2``,
 ``published-bo`` (ARES), next to ``nelder-mead``, ``published-nm`` and the physics methods. The
-ARES final reading is taken at the optimizer's ``recommend()`` (its estimate of the best setting
-now) where it has one, else at its best reading.
+ARES final reading is taken at the optimizer's ``recommend()`` (``drive``'s set-back: e.g. the
+re-measured best of ``nelder-mead-restart``, the best reading for optimizers without an estimate).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -55,9 +56,10 @@ def ares_run(args) -> dict:
     from pigp_torch.machines.ares_ea.benchmark import check_ares_methods
     from pigp_torch.machines.ares_ea.methods import ares_objective_for
 
-    trial, method, family, seed, readings, noise, window = args
+    trial, method, family, seed, readings, noise, window, options = args
     torch.set_num_threads(1)
     (spec,) = check_ares_methods([method])
+    spec = spec.with_options(**options) if options else spec
     machine = KINDS["ares-ea"].drift_machine(
         family=family, seed=seed, trial=trial, objective=ares_objective_for(method), noise=noise
     )
@@ -66,9 +68,7 @@ def ares_run(args) -> dict:
     t0 = time.perf_counter()
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
-        optimizer = spec.build(ctx)
-        _, true = drive(machine, optimizer, readings, set_back=False)
-        true = torch.cat([true, set_back(machine, optimizer)[None]])
+        _, true = drive(machine, spec.build(ctx), readings)
     mae = ((true - machine.target).abs().mean(-1) * 1e6).numpy()
     return {
         "kind": "ares", "method": method, "id": trial, "family": family,
@@ -76,16 +76,6 @@ def ares_run(args) -> dict:
         "final": float(mae[-1]), "best": float(mae[:-1].min()),
         "series": mae, "seconds": time.perf_counter() - t0,
     }  # fmt: skip
-
-
-def set_back(machine, optimizer) -> torch.Tensor:
-    """Set the knobs to the optimizer's estimate of the best setting now (``recommend()``, e.g.
-    the re-measured best of ``nelder-mead-restart``; ``best()``'s setting for optimizers without
-    one), take one reading and return its ``m`` true observables."""
-    recommend = getattr(optimizer, "recommend", None)
-    machine.set(recommend() if recommend is not None else optimizer.best()[0])
-    machine.read()
-    return machine.last_true_observables.clone()
 
 
 def spear3_run(args) -> dict:
@@ -191,7 +181,8 @@ def _jobs(a) -> tuple[list, object]:
     if a.kind == "ares":
         trials = _ids(a.trials, ARES_HELD_OUT, a.held_out, "ARES trials")
         window = tuple(a.window or (150, 300))
-        return [(t, m, a.family, a.seed, a.readings, a.noise, window)
+        options = json.loads(a.options) if a.options else {}
+        return [(t, m, a.family, a.seed, a.readings, a.noise, window, options)
                 for m in a.methods for t in trials], ares_run  # fmt: skip
     seeds = _ids(a.seeds, RING_HELD_OUT, a.held_out, "SPEAR3 seeds")
     window = tuple(a.window or (100, 500))
@@ -229,6 +220,11 @@ def main(argv=None) -> int:
                         "model ring 0 + 40 ensemble rings) instead of computing it")  # fmt: skip
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--held-out", action="store_true")
+    p.add_argument(
+        "--options",
+        default=None,
+        help='ARES: the methods\' options as JSON, e.g. \'{"fallback": "track"}\'',
+    )
     p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
     p.add_argument("--summary", action="store_true",
                    help="markdown table: per method the median over machines (IQR)")  # fmt: skip
@@ -253,7 +249,7 @@ def main(argv=None) -> int:
         if a.family not in KINDS["ares-ea" if ares else "spear3"].drift_families():
             raise ValueError(f"unknown family {a.family!r}")
         jobs, fn = _jobs(a)
-    except (KeyError, ValueError, OSError) as err:
+    except (KeyError, ValueError, OSError) as err:  # json.JSONDecodeError is a ValueError
         print(f"error: {err}", file=sys.stderr)
         return 2
     runs = []

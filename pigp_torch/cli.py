@@ -32,7 +32,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "serve_sim",
     "badger_setup",
     "bench_bo",
-    "bench_ares",
+    "bench_kinds",
     "report",
 )
 

@@ -108,7 +108,7 @@ def test_demo_refuses_a_machine_among_the_ensemble_rings(capsys):
 def test_a_too_small_center_ensemble_is_refused_before_any_ring(capsys, monkeypatch):
     """Fewer ensemble rings than knobs + 1 is refused at once (no ring is built), and --help says
     the minimum."""
-    import pigp_torch.simulation.ensemble as ens
+    import pigp_torch.machines.ring.ensemble as ens
 
     def no_rings(*a, **k):
         raise AssertionError("a ring was computed")

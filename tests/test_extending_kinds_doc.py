@@ -2,7 +2,8 @@
 as ``transfer_line/__init__.py``, found by the registry in a fresh interpreter (as a folder under
 ``pigp_torch/machines`` is; nothing else of the package is edited), used from Python (the page's
 block asserts the registry, the method, the contract, the prior and a tuned run) and run through
-``pigp optimize`` with the page's run file (its plan first, ``--dry-run``)."""
+``pigp optimize`` with the page's run file (its plan first, ``--dry-run``), then ``pigp report``
+of its log (the kind's true curve)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ exec(compile(open(sys.argv[2]).read(), sys.argv[2], "exec"), namespace)
 from pigp_torch.cli import main
 
 assert main(["optimize", "--config", sys.argv[3], "--dry-run"]) == 0
-sys.exit(main(["optimize", "--config", sys.argv[3], "--quiet"]))
+assert main(["optimize", "--config", sys.argv[3], "--quiet"]) == 0
+sys.exit(main(["report", "line.jsonl", "-o", "line_report"]))
 """
 
 
@@ -57,4 +59,6 @@ def test_a_new_machine_kind_is_one_folder(tmp_path):
     assert len(evaluations) == 10
     assert all(len(r["observables"]) == 4 for r in evaluations)  # the screen's four numbers
     assert records[-1]["status"] == "completed"
+    page = (tmp_path / "line_report.html").read_text()  # the kind's true curve, in m
+    assert "best true value" in page and "true optimum" not in page  # no search: none offered
     assert str(DOC).endswith("extending.md")

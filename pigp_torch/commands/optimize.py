@@ -113,7 +113,8 @@ exit status:
        written (end record: restored false, last_setpoint)
   4    refused: another run holds the run log or the machine (lock file named); nothing
        moved
-  129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored
+  129  stopped by SIGHUP, 130 by SIGINT (Ctrl-C), 143 by SIGTERM; knobs restored (mode:
+       track: left where its restore says, by default the optimizer's estimate)
 """
 
 

@@ -53,6 +53,9 @@ def print_plan(setup, records, out) -> None:
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)
+    if c.mode == "track":  # until stopped, the time limit or the count, whichever first
+        print(f"  track mode: until stopped, {c.time_limit} ({c.time_limit_s():g} s) or "
+              f"{c.budget} readings; then the knobs at: {c.restore}", file=out)  # fmt: skip
     print(
         f"  budget {c.budget} evaluations, {'maximize' if c.objective.maximize else 'minimize'}"
         f" the objective ({yu}), options {c.method.options or '{}'}, seed {c.method.seed}",

@@ -14,6 +14,11 @@ measured from the last evaluated point (``PhysicsModelBO(travel_limit=2 * fracti
 box (``step_limit``, a fraction of the half-range around the told point with the highest
 posterior mean) is the method's own.
 
+Tracking: the generator tells its optimizer every new row, however long the routine, and
+:meth:`PhysicsGenerator.recommend` / :meth:`PhysicsGenerator.tracked` expose the optimizer's
+current estimate of the optimum and of its tracked unknowns (what ``pigp optimize``'s track mode
+leaves the knobs at and logs).
+
 Serialization: the prior is stored as plain data (:meth:`PhysicsPrior.to_dict
 <pigp_torch.prior.PhysicsPrior.to_dict>`); importing this module registers the generator in
 Xopt's registry under ``"pigp_physics"``, so ``Xopt.from_yaml`` (and Badger, which lists Xopt's
@@ -252,6 +257,30 @@ class PhysicsGenerator(Generator, StateOwner):
         candidate = {n: by_name[n] for n in self.vocs.variable_names}
         candidate.update({k: v.value for k, v in self.vocs.constants.items()})
         return [candidate]
+
+    def recommend(self) -> dict[str, float]:
+        """The optimizer's current estimate of the best setting (its
+        :meth:`~pigp_torch.optimizers.base.AskTellOptimizer.recommend`, after telling it every
+        row of the data) as ``{variable: value}`` in the VOCS order, with the VOCS constants:
+        where a long routine (a Badger run for a shift) leaves the knobs at its end.
+
+        Raises:
+            ValueError: no data yet.
+        """
+        self._sync()
+        if not self.optimizer.n_told:
+            raise ValueError("no data yet: evaluate a start point first (Xopt.evaluate_data)")
+        x = torch.as_tensor(self.optimizer.recommend(), dtype=DTYPE).reshape(-1)
+        by_name = dict(zip(self.knob_names, x.tolist(), strict=True))
+        out = {n: by_name[n] for n in self.vocs.variable_names}
+        out.update({k: v.value for k, v in self.vocs.constants.items()})
+        return out
+
+    def tracked(self) -> dict[str, tuple[float, str]]:
+        """The optimizer's tracked unknowns now, ``{name: (value, unit)}`` (every row of the
+        data told first; ``{}`` when it tracks none)."""
+        self._sync()
+        return dict(self.optimizer.tracked())
 
     @property
     def replayed(self) -> bool | None:

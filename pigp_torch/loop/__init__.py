@@ -127,6 +127,7 @@ _EXPORTS = {
     "RunOptions": "options",
     "RunAborted": "signals",
     "Terminated": "signals",
+    "track": "track_mode",
 }
 __getattr__ = lazy_exports(__name__, _EXPORTS)
 
@@ -138,4 +139,5 @@ __all__ = [
     "Terminated",
     "effective_max_step",
     "optimize",
+    "track",
 ]

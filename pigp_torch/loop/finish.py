@@ -121,8 +121,29 @@ def _restore_best(run: Run, rows: list[dict], out: Ending, reference) -> None:
         out.restored_to = "best"
 
 
-def _restore(run: Run, rows: list[dict], out: Ending) -> None:
-    """Put the knobs where the restore rules say, then read where they are."""
+def _restore_goal(run: Run, out: Ending, goal, reference) -> None:
+    """A track run's end: the knobs to ``goal``, ``(name, x)`` (``x`` ``None``: left where they
+    are); when they cannot be set there (not a second signal), to the initial knobs instead."""
+    out.restored_to, out.target = goal
+    if out.target is None:
+        return
+    out.restore_error, out.attempts_made, out.attempt_errors = run.restore_to(
+        out.target, f"restore {out.restored_to}", None
+    )
+    if out.restore_error is None or isinstance(out.restore_error, KeyboardInterrupt):
+        return
+    # stack: here, _restore, end_run, track, track's caller
+    warnings.warn(f"the knobs could not be set to the {goal[0]}: {out.restore_error}; "
+                  "restoring the initial knobs instead", stacklevel=5)  # fmt: skip
+    out.target, out.restored_to = run.x_initial, f"initial ({goal[0]} not reached)"
+    out.restore_error, more, errs = run.restore_to(out.target, "restore initial", reference)
+    out.attempts_made, out.attempt_errors = out.attempts_made + more, out.attempt_errors + errs
+
+
+def _restore(run: Run, rows: list[dict], out: Ending, goal=None) -> None:
+    """Put the knobs where the restore rules say (or at ``goal``, ``(name, x or None)``: a
+    track run's end chosen by its caller; ``None``: left where they are), then read where they
+    are."""
     opts, objective = run.opts, run.objective
     # initial knobs after any failure; initial / best / none after a completed run
     mode = opts.restore if out.error is None else ("none" if opts.restore == "none" else "initial")
@@ -130,7 +151,9 @@ def _restore(run: Run, rows: list[dict], out: Ending) -> None:
         mode = "initial"
     # a knob whose readback was off its setpoint at the start may read off it again
     reference = run.rb_found if torch.equal(run.x_initial, run.x_found) else None
-    if mode == "best":
+    if goal is not None:
+        _restore_goal(run, out, goal, reference)
+    elif mode == "best":
         _restore_best(run, rows, out, reference)
     elif mode == "initial":
         out.target = run.x_initial
@@ -179,7 +202,8 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
     known = run.log.write_error if run.log is not None else None
     try:
         end = {"restored_to": out.restored_to, "final_knobs": out.final_knobs}
-        end.update(n_evaluations=len(rows), best=out.best)
+        n = rows[-1]["step"] + 1 if rows else 0  # rows may be the last ones only (a track run)
+        end.update(n_evaluations=n, best=out.best)
         if run.is_machine:
             end.update(restored=out.restored, last_setpoint=run.last_acknowledged())
             end.update(last_intended=run.sent["last"], final_setpoints=out.final_setpoints)
@@ -209,11 +233,14 @@ def _write_end(run: Run, rows: list[dict], out: Ending, guard) -> None:
             run.log.close()
 
 
-def end_run(run: Run, rows: list[dict], error, status: str, reason: str, guard) -> Ending:
-    """The restore and the end record (signals deferred by the caller)."""
+def end_run(
+    run: Run, rows: list[dict], error, status: str, reason: str, guard, goal=None
+) -> Ending:
+    """The restore and the end record (signals deferred by the caller); ``goal``: see
+    :func:`_restore`."""
     out = Ending(error, status, reason, best_row(rows, run.names, run.maximize))
     if run.is_machine:
-        _restore(run, rows, out)
+        _restore(run, rows, out, goal)
     if error is None and out.restore_error is not None:
         out.status, out.reason = classify(out.restore_error)
         out.reason = f"restoring the knobs failed: {out.reason}"

@@ -293,9 +293,12 @@ def open_log(run: Run, log: RunLog | str | Path | None, resume) -> None:
         )
 
 
-def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, guard) -> None:
-    """Replay the logged evaluations (a resume), then ask -> evaluate -> tell up to the budget;
-    every row is appended to ``rows`` as it is made."""
+def run_all_steps(
+    run: Run, optimizer, rows: list[dict], *, progress, callback, guard, stop=None, record=None
+) -> None:
+    """Replay the logged evaluations (a resume), then ask -> evaluate -> tell up to the budget
+    (or until ``stop()``); every row is appended to ``rows`` as it is made (``stop``,
+    ``record``: see :class:`~pigp_torch.loop.steps.StepContext`)."""
     if run.logged:
         replay(optimizer, run.logged, progress=progress)
         rows.extend(evaluation_rows(run.logged, run.names, run.label))
@@ -317,5 +320,7 @@ def run_all_steps(run: Run, optimizer, rows: list[dict], *, progress, callback, 
         callback=callback,
         progress=progress,
         start_fields={} if noise is None else {"noise": noise},
+        stop=stop,
+        record=record,
     )
-    run_steps(ctx, optimizer, run.x0, rows, first=len(rows), budget=run.budget, guard=guard)
+    run_steps(ctx, optimizer, run.x0, rows, first=len(run.logged), budget=run.budget, guard=guard)

@@ -78,6 +78,10 @@ class StepContext:
         callback: called with each new row (a dict) after its step, or ``None``.
         progress: show a tqdm progress bar.
         start_fields: more fields of the start record (the noise in force).
+        stop: a track run's ``() -> bool``, asked before each step after the first: true ends
+            the steps (its time limit); ``None``: none.
+        record: a track run's ``() -> dict``: more fields of each evaluation record (its
+            ``tracked``); ``None``: none.
     """
 
     evaluate: Callable[..., tuple[float, int]]
@@ -93,6 +97,8 @@ class StepContext:
     callback: Callable[[dict], None] | None = None
     progress: bool = False
     start_fields: dict = dataclasses.field(default_factory=dict)
+    stop: Callable[[], bool] | None = None
+    record: Callable[[], dict] | None = None
 
 
 def _log_start(ctx: StepContext, budget: int, first: int) -> None:
@@ -112,7 +118,7 @@ def run_steps(
 ) -> None:  # fmt: skip
     """Steps ``first .. budget-1`` of :func:`~pigp_torch.loop.optimize` from ``x0`` (``d``, the
     setting of step 0), appended to ``rows``; what each step reads is ``ctx``."""
-    log, names, label = ctx.log, ctx.names, ctx.label
+    log, names, label, stop, record = ctx.log, ctx.names, ctx.label, ctx.stop, ctx.record
     if log is not None:
         _log_start(ctx, budget, first)
     bar = None
@@ -124,6 +130,8 @@ def run_steps(
         x = x0
         seen = len(optimizer.notices)  # notices of a replay are not repeated
         for step in range(first, budget):
+            if step > 0 and stop is not None and stop():
+                break
             t_set = time.time()
             ask_time = 0.0
             notices: list[dict] = []
@@ -152,6 +160,7 @@ def run_steps(
                         ask_time_s=ask_time, eval_time_s=eval_time,
                         **({"reading": info} if isinstance(info, dict) else {}),
                         **({"observables": obs} if obs is not None else {}),
+                        **(record() if record is not None else {}),
                     )  # fmt: skip
                 rows.append(row)
             t0 = time.perf_counter()

@@ -192,7 +192,9 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
     r"""Run an ask/tell ``optimizer`` on ``machine`` for ``readings`` readings: reading 0 at the
     start setting, reading :math:`t \ge 1` at the optimizer's ``t``-th ask; each reading is told
     (with the observables when the optimizer fits them, ``uses_observables``). With ``set_back``
-    the knobs then go to the optimizer's best setting (``best()``) and one more reading is taken.
+    the knobs then go to the optimizer's recommended setting (``recommend()``, where the
+    optimizer puts the optimum now; ``best()``'s setting for one without it) and one more
+    reading is taken.
 
     Returns:
         ``(X, true)``: ``T x d`` settings of the readings and ``T x m`` true observables
@@ -213,7 +215,8 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
         optimizer.tell(X[-1], y, **({"observables": machine.last_observables} if fits else {}))
         true.append(machine.last_true_observables.clone())
     if set_back:
-        machine.set(optimizer.best()[0])
+        recommend = getattr(optimizer, "recommend", None)
+        machine.set(recommend() if recommend is not None else optimizer.best()[0])
         machine.read()
         X.append(machine.get())
         true.append(machine.last_true_observables.clone())

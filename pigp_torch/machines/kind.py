@@ -11,10 +11,14 @@ A *machine kind* is one accelerator family with everything the package needs to 
 * ``section()``: the pydantic class of its run-file section (``machine: {kind: <run_file_kind>,
   ...}``), ``check_run(config, method)`` (the checks of a run file that need the simulation),
   ``simulated_machine(config)`` (the machine ``pigp optimize`` runs on) and
-  ``describe(section, machine)`` (that machine in words);
+  ``describe(section, machine)`` (that machine in words), ``methods_noise(section)`` and
+  ``stated_noise(section)`` (the reading noise its methods and the loop are told);
 * ``register_methods(register)``: the methods it adds to :data:`pigp_torch.methods.METHODS`
   (its :attr:`default_method` among them, or a generic one);
-* ``benchmark(**options)``: its benchmark task (a table, one row per method, trial and step).
+* ``benchmark(**options)``: its benchmark task (a table, one row per method, trial and step),
+  and ``register_bench(bench)`` its ``pigp bench <name>`` command;
+* ``true_objective(config, say)``: the noise-free objective of its simulated machine, which the
+  run report draws (:class:`TrueObjective`).
 
 Each kind is a sub-package of :mod:`pigp_torch.machines` whose ``__init__`` defines ``KIND`` (a
 :class:`MachineKind`) and imports nothing heavy: the registry finds every sub-package on first use
@@ -30,10 +34,30 @@ from __future__ import annotations
 import importlib
 import pkgutil
 from collections.abc import Callable, Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 if TYPE_CHECKING:
+    from torch import Tensor
+
     from pigp_torch.prior.machine_model import MachineModel
+
+
+class TrueObjective(NamedTuple):
+    r"""The noise-free objective of a run file's simulated machine
+    (:meth:`MachineKind.true_objective`), for the run report's true curve.
+
+    Attributes:
+        values: ``n x d`` settings (the run's knob units) ``->`` ``n`` noise-free objective
+            values (the run's objective unit).
+        noise: the standard deviation of one reading (objective unit) the section states, or
+            ``None`` (the report keeps the noise it was given).
+        peak: the same objective, differentiable (autograd), when the report may search its
+            maximum within the run's bounds; ``None``: no search.
+    """
+
+    values: Callable[[Tensor], Tensor]
+    noise: float | None = None
+    peak: Callable[[Tensor], Tensor] | None = None
 
 
 class MachineKind:
@@ -83,10 +107,33 @@ class MachineKind:
         """The simulated machine of a run file whose section is the kind's."""
         raise NotImplementedError(f"machine kind {self.name!r} has no simulated machine")
 
+    def methods_noise(self, section: Any) -> float | None:
+        """The reading noise (the objective's unit) the kind's simulated machine tells the
+        method building the run's optimizer (:attr:`~pigp_torch.methods.RunContext.noise`;
+        ``None``: the method keeps its own default). Default: the section's ``noise`` when
+        above 0."""
+        return section.noise if section.noise > 0 else None
+
+    def stated_noise(self, section: Any) -> float | None:
+        """The reading noise (the objective's unit) the run states to the loop for its
+        re-read checks (:attr:`~pigp_torch.loop.RunOptions.noise`) when the run file gives no
+        ``objective_noise``. Default ``None`` (then the prior's noise, if any)."""
+        return None
+
     def describe(self, section: Any, machine: Any) -> str:
         """The simulated machine of a run file's section in words (the plan of ``pigp optimize
         --dry-run``: "plan: METHOD on the <this>"). Default: the kind's title."""
         return f"simulated {self.title}"
+
+    def true_objective(self, config: Any, say: Callable[[str], None]) -> TrueObjective | None:
+        """The noise-free objective of the simulated machine of a run file whose section is the
+        kind's (:class:`TrueObjective`; ``say`` takes one-line progress messages). Default
+        ``None``: the report draws no true curve."""
+        return None
+
+    def register_bench(self, bench: Any) -> None:
+        """Add the kind's ``pigp bench <name>`` to ``bench`` (the sub-parsers of ``pigp
+        bench``: ``bench.add_parser(name, ...)``), importing nothing heavy. Default: none."""
 
     def register_methods(self, register: Callable[[Any], Any]) -> None:
         """Add the kind's methods with ``register(MethodSpec(...))``. Default: none."""

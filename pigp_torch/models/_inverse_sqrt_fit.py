@@ -18,6 +18,13 @@ class FitTerms:
     """The readings' covariance in the fit, negative log posterior, linear start, Laplace
     covariance and evidence of the form."""
 
+    def noise_variances(self, n: int) -> Tensor:
+        r"""``n`` noise variances of the readings in the fit: :math:`\sigma_n^2 / w_i` with the
+        readings' weights :math:`w_i \in (0, 1]` (``weights``, set by :meth:`fit`; a forgotten
+        reading is a noisier one), :math:`\sigma_n^2` each without weights."""
+        var = torch.full((n,), self.noise**2, dtype=DTYPE)
+        return var if self.weights is None else var / self.weights
+
     def fit_covariance(self, X: Tensor) -> tuple[Tensor | None, float]:
         r"""``(P, log det Sigma)`` of the readings at ``X`` (``n x d``) in the fit:
         :math:`P = \Sigma^{-1}` (``n x n``) with :math:`\Sigma = K + \sigma_n^2 I` when ``gls``
@@ -26,14 +33,16 @@ class FitTerms:
         :meth:`fit`'s own when ``X`` is its data (the same tensor)."""
         n = X.shape[0]
         if not self.gls:
-            return None, 2.0 * n * math.log(self.noise)
+            if self.weights is None:
+                return None, 2.0 * n * math.log(self.noise)
+            return None, float(torch.log(self.noise_variances(n)).sum())
         if self._fit_cov is not None and self._fit_cov[0] is X:
             return self._fit_cov[1], self._fit_cov[2]
         theta = self.theta
         if theta is None or theta.shape[0] != self.n_params:
             theta = self.prior_theta()
         K = self._k_res(X, X, self.residual_precision(theta))
-        L = torch.linalg.cholesky(K + self.noise**2 * torch.eye(n, dtype=DTYPE))
+        L = torch.linalg.cholesky(K + torch.diag(self.noise_variances(n)))
         P = torch.cholesky_inverse(L)
         return (P + P.T) / 2, 2.0 * float(torch.log(L.diagonal()).sum())
 
@@ -41,7 +50,8 @@ class FitTerms:
         d = self.dim
         P, _ = self.fit_covariance(X)
         if P is None:
-            data = (((Y - self.form(X, theta)) / self.noise) ** 2).sum()
+            data = ((Y - self.form(X, theta)) / self.noise) ** 2
+            data = (data if self.weights is None else data * self.weights).sum()
         else:
             e = Y - self.form(X, theta)
             data = e @ P @ e
@@ -66,7 +76,7 @@ class FitTerms:
         if n < d + 2:
             return None
         e = (Y - self.f_inf).clamp_min(self.noise)
-        w = e**3
+        w = e**3 if self.weights is None else e**3 * self.weights.sqrt()
         A = torch.cat([torch.ones(n, 1, dtype=DTYPE), X], 1) * w[:, None]
         rhs = (e**-2 - ((X @ self.B) * X).sum(-1)) * w
         # NumPy's LAPACK (gelsd), not torch.linalg.lstsq: torch's CPU solver (MKL gelsy) gives
@@ -128,9 +138,14 @@ class FitTerms:
     def _laplace(self, X: Tensor) -> None:
         J = self.jacobian(X)
         P, log_det = self.fit_covariance(X)
-        self._log_det_noise = None if P is None else log_det  # None: n log noise^2
+        weighted = P is not None or self.weights is not None
+        self._log_det_noise = log_det if weighted else None  # None: n log noise^2
         prior_prec = self.prior_precision()
-        A = J.T @ J / self.noise**2 if P is None else J.T @ P @ J
+        if P is None:
+            Jw = J if self.weights is None else J * self.weights.unsqueeze(-1)
+            A = Jw.T @ J / self.noise**2
+        else:
+            A = J.T @ P @ J
         A = A + prior_prec
         L = torch.linalg.cholesky(A)
         cov = torch.cholesky_inverse(L)
@@ -156,6 +171,8 @@ class _NumpyObjective:
         self.noise = model.noise
         P, _ = model.fit_covariance(X)
         self.P_data = None if P is None else P.numpy()
+        # forgetting: reading i counts with variance sigma_n^2 / w_i (1.0 leaves every bit)
+        self.sqrt_w = 1.0 if model.weights is None else np.sqrt(model.weights.numpy())
         self.center0 = model.center0.numpy()
         self.P = None if model.center_cov is None else model.center_precision.numpy()
         self.tau2 = (model.tau**2).numpy()
@@ -188,8 +205,8 @@ class _NumpyObjective:
         g = c + beta * q
         background = self.f_inf + (theta[d + 2] if self.f_inf_std > 0 else 0.0)
         if self.P_data is None:
-            r = (self.Y - background - g**-0.5) / self.noise
-            w = r / self.noise
+            r = self.sqrt_w * (self.Y - background - g**-0.5) / self.noise
+            w = self.sqrt_w * r / self.noise
             data = float((r**2).sum())
         else:  # gls
             e = self.Y - background - g**-0.5

@@ -200,6 +200,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         self._fit_cov: tuple | None = None  # (X, Sigma^-1, log det Sigma) of the last fit
         self.max_iter = int(max_iter)
         self.theta: Tensor | None = None
+        self.weights: Tensor | None = None  # readings' weights of the last fit (None: all 1)
         self.cov: Tensor | None = None
         self._X: Tensor | None = None
 
@@ -286,8 +287,10 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         return self.theta
 
     # -- fitting --------------------------------------------------------------------------------
-    def fit(self, X, Y) -> float:
+    def fit(self, X, Y, weights=None) -> float:
         r"""MAP fit to ``X`` (``n x d``), ``Y`` (``n``); returns the negative log posterior.
+        ``weights`` (``n`` in (0, 1], default all 1): reading i counts with noise variance
+        :math:`\sigma_n^2 / w_i` in the fit, its Laplace covariance and the residual GP.
 
         Starts: the previous fit (warm start), :meth:`prior_theta` and the linear least-squares
         solution; the best end point wins. Then the Laplace covariance and the residual GP.
@@ -299,6 +302,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         Y = torch.as_tensor(Y, dtype=DTYPE).reshape(-1)
         if Y.shape[0] != X.shape[0] or not torch.isfinite(Y).all():
             raise ValueError("Y must be finite with one value per row of X")
+        self.weights = None if weights is None else torch.as_tensor(weights, dtype=DTYPE)
         self._fit_cov = None  # Sigma from the theta the fit starts from
         self._fit_cov = (X, *self.fit_covariance(X))
         starts = [self.prior_theta()]
@@ -362,7 +366,7 @@ class InverseSqrtPeakModel(FitTerms, NumpyPrediction, BoxAnalysis):
         self._res_prec = self.residual_precision()
         with torch.no_grad():
             r = Y - self.form(X)
-        K = self._k_res(X, X) + self.noise**2 * torch.eye(X.shape[0], dtype=DTYPE)
+        K = self._k_res(X, X) + torch.diag(self.noise_variances(X.shape[0]))
         self._L = torch.linalg.cholesky(K)
         self._alpha = torch.cholesky_solve(r.unsqueeze(-1), self._L).squeeze(-1)
 

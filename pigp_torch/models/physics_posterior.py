@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from pigp_torch.models._centre_design import expected_information
+from pigp_torch.models.forgetting import Forgetting
 from pigp_torch.models.inverse_sqrt import InverseSqrtPeakModel
 from pigp_torch.models.posterior import PosteriorBase, Prediction
 from pigp_torch.prior import PhysicsPrior
@@ -35,6 +36,9 @@ class PhysicsFormPosterior(PosteriorBase):
             \Sigma`) or ``"auto"`` (the ensemble's when the prior has one).
         prior_check, check_z, evidence_margin, check_every, evidence_from, relax: the prior
             check, see :class:`~pigp_torch.optimizers.physics_bo.PhysicsModelBO`.
+        forgetting: the learned memory of a drifting machine
+            (:class:`~pigp_torch.models.forgetting.Forgetting`): ``True`` (default) its
+            defaults, a dict its options, ``False`` none (every reading counts for good).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options.
     """
 
@@ -53,8 +57,12 @@ class PhysicsFormPosterior(PosteriorBase):
         check_every: int = 3,
         evidence_from: int | None = 10,
         relax=None,
+        forgetting: bool | dict = True,
         **model_options,
     ) -> None:
+        on = forgetting is not False
+        self.forgetting = Forgetting(**(forgetting if isinstance(forgetting, dict) else {}))
+        self.forgetting = self.forgetting if on else None
         self.center_prior = _choose(center_prior, "center_prior", "box", prior.center_cov,
                                     "center_cov", model_options)  # fmt: skip
         self.shape_prior = _choose(shape_prior, "shape_prior", "model", prior.peak_shape,
@@ -87,9 +95,22 @@ class PhysicsFormPosterior(PosteriorBase):
         self._notices: list[dict] = []
 
     # -- the posterior protocol -----------------------------------------------------------------
+    def observe(self, x: torch.Tensor, y: float) -> None:
+        """Step detection on the new reading's innovation (``forgetting``)."""
+        if self.forgetting is not None and self.forgetting.observe(self.model, x, y):
+            self._notices.extend(self.forgetting.notices)
+            self.forgetting.notices.clear()
+
     def fit(self, X: torch.Tensor, Y: torch.Tensor) -> None:
-        """Fit the form to all readings (``X: n x d``, ``Y: n``), then run the prior check."""
-        self.model.fit(X, Y)
+        """Fit the form to the remembered readings of ``X: n x d``, ``Y: n`` (all of them while
+        no drift is found) with their weights, then run the prior check."""
+        memory, w = self.forgetting, None
+        if memory is not None:
+            if memory.due(len(Y)):
+                memory.select(self.model, X, Y)
+            first, w = memory.weights(len(Y))
+            X, Y = (X, Y) if first == 0 else (X[first:], Y[first:])
+        self.model.fit(X, Y) if w is None else self.model.fit(X, Y, weights=w)
         if self.prior_check:
             self._check_prior(X, Y)
 
@@ -141,6 +162,7 @@ class PhysicsFormPosterior(PosteriorBase):
             "misfit_z": self.misfit_z,
             "log_evidence_ratio": self.log_evidence_ratio,
             "relaxed": self.relaxed,
+            "memory_readings": None if self.forgetting is None else self.forgetting.tau,
         }
 
     def take_notices(self) -> list[dict]:
@@ -152,9 +174,16 @@ class PhysicsFormPosterior(PosteriorBase):
         r"""``(z, chi2, nu)`` of the fitted form at the told ``X``, ``Y`` (see ``prior_check``)."""
         with torch.no_grad():
             r = (Y - self.model.form(X)) / self.model.noise
-        nu = max(len(Y) - self.model.n_params, 1)
-        chi2 = float((r**2).sum())
+        w = self.model.weights  # forgetting: the weighted chi2 on the weights' count
+        nu = max((len(Y) if w is None else float(w.sum())) - self.model.n_params, 1)
+        chi2 = float((r**2).sum()) if w is None else float((w * r**2).sum())
         return (chi2 - nu) / math.sqrt(2.0 * nu), chi2, nu
+
+    @property
+    def drifting(self) -> bool:
+        """Whether the learned memory follows a drift (a finite memory or a detected step)."""
+        memory = self.forgetting
+        return memory is not None and (memory.tau < math.inf or memory.origin > 0)
 
     @property
     def relaxed(self) -> bool:
@@ -188,9 +217,12 @@ class PhysicsFormPosterior(PosteriorBase):
         n_evidence = n_misfit if self.evidence_from is None else self.evidence_from
         if self.stage == last or len(Y) < min(n_misfit, n_evidence):
             return
-        # The misfit (and its reported z) only from p + 5 readings, where its test applies.
+        # The misfit (and its reported z) only from p + 5 readings, where its test applies;
+        # with forgetting, p + 5 remembered ones (the sum of the weights).
+        w = self.model.weights
+        n_kept = len(Y) if w is None else float(w.sum())
         z = chi2 = nu = None
-        if len(Y) >= n_misfit:
+        if n_kept >= n_misfit:
             z, chi2, nu = self.misfit(X, Y)
             self.misfit_z = z
         target, reasons, fitted = None, [], set()
@@ -205,7 +237,7 @@ class PhysicsFormPosterior(PosteriorBase):
             ratios = {}
             for stage in range(self.stage + 1, last + 1):
                 model = self._stage_model(stage)
-                model.fit(X, Y)
+                model.fit(X, Y, weights=self.model.weights)
                 fitted.add(stage)
                 ratios[stage] = model.log_evidence() - here
             best = max(ratios, key=ratios.get)
@@ -218,11 +250,11 @@ class PhysicsFormPosterior(PosteriorBase):
             return
         model = self._stage_model(target)
         if target not in fitted:
-            model.fit(X, Y)
+            model.fit(X, Y, weights=self.model.weights)
         self.model, self.stage = model, target
         self._alternatives = {k: v for k, v in self._alternatives.items() if k > target}
         z_after, chi2_after, nu_after = self.misfit(X, Y)
-        if len(Y) >= n_misfit:
+        if n_kept >= n_misfit:
             self.misfit_z = z_after
         freed = describe_stage(self.relax[target - 1])
         self._notices.append(

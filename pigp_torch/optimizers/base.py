@@ -86,3 +86,23 @@ class AskTellOptimizer:
         ys = torch.tensor(self.Y, dtype=DTYPE)
         i = int(ys.argmax() if self.maximize else ys.argmin())
         return self.X[i].clone(), self.Y[i]
+
+    def recommend(self) -> torch.Tensor:
+        """The optimizer's current estimate of the best setting (``d``, knob units).
+
+        Default: the best observed point (:meth:`best`). An optimizer with a model of the
+        machine overrides it with the model's optimum *now* (on a drifting machine the best
+        reading may be hours old). A track run leaves the knobs here at its end
+        (``restore: estimate``); the Xopt generator exposes it.
+
+        Raises:
+            RuntimeError: nothing told yet.
+        """
+        return self.best()[0]
+
+    def tracked(self) -> dict[str, tuple[float, str]]:
+        """The tracked unknowns' current estimates: ``{name: (value, unit)}`` (e.g.
+        ``{"beam_x": (1.2e-4, "m")}``). Default ``{}``: nothing tracked. The loop logs them
+        with each evaluation (field ``tracked``); the report and the dashboard draw them
+        against time."""
+        return {}

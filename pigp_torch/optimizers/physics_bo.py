@@ -21,6 +21,16 @@ reads near the fitted peak, where the form is flat and says little about where t
 multi-start L-BFGS-B (:class:`~pigp_torch.optimizers.bo.MultiStartLBFGSB`: Sobol points of the
 box, the box centre and the fitted centre projected into it) and the trust box with an optional
 travel limit (:class:`~pigp_torch.optimizers.bo.TrustRegion`).
+
+A machine that drifts is followed by itself (no option): the posterior's learned memory
+(:class:`~pigp_torch.models.forgetting.Forgetting`) inflates old readings' noise variance by
+:math:`e^{\mathrm{age}/\tau}` with :math:`\tau` chosen by the predictive likelihood of recent
+readings (:math:`\infty`, every reading for good, on a static machine: its runs are unchanged),
+and restarts the memory at a step found by a CUSUM of the innovations. While it follows a drift
+the fitted centre and height move with the machine, the trust box sits at the told point of
+highest *current* posterior mean, and every third ask re-measures the fitted optimum
+(``track_schedule``). :meth:`PhysicsModelBO.recommend` is the fitted optimum now and
+:meth:`PhysicsModelBO.tracked` the fitted peak, the centre's travel and the memory.
 """
 
 from __future__ import annotations
@@ -49,6 +59,7 @@ from pigp_torch.optimizers.bo import (
     MultiStartLBFGSB,
     Schedule,
     TrustRegion,
+    WhileDrifting,
 )
 from pigp_torch.optimizers.bo.defaults import PHYSICS_DEFAULTS
 from pigp_torch.prior import PhysicsPrior
@@ -87,6 +98,11 @@ class PhysicsModelBO(BayesianOptimizer):
             :class:`~pigp_torch.optimizers.bo.ExpectedCentreInformation`); overrides
             ``info_every`` (``None``, default: ``info_every``'s
             alternation of ``u`` and ``i``).
+        track_schedule: the schedule (letters as ``schedule``) while the learned memory
+            follows a drift (a finite memory or a detected step: ``forgetting`` below); default
+            ``"uum"``, two UCB asks and a visit of the fitted optimum: a drifting machine is
+            tracked by re-measuring where the current fit puts the optimum, and the
+            centre-information asks, which read away from the peak, cost gain there.
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
             one value or ``d``), or ``None`` (default: none). The search box is the trust box
@@ -147,14 +163,23 @@ class PhysicsModelBO(BayesianOptimizer):
             (``center_std``, ``center_cov_scale``, ``center_floor_std``, ``log_c_std``,
             ``log_beta_std``, ``residual_std``, ``f_inf_std``, ``shape_std``, ``noise``, and
             ``gls``: the form fitted with the residual GP's covariance of the readings; off by
-            default).
+            default), and ``forgetting``: the learned memory of a drifting machine
+            (:class:`~pigp_torch.models.forgetting.Forgetting`: old readings' noise variance
+            grows as :math:`e^{\mathrm{age}/\tau}`, :math:`\tau` chosen by the predictive
+            likelihood of recent readings, :math:`\infty` on a static machine, where every
+            fit equals the one without it; a step is detected by a CUSUM of the innovations
+            and the memory restarts; on by default, ``False`` turns it off, a dict sets its
+            options).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
     ``fitted_peak``, ``acq_value``, ``inform``, ``misfit_z``, ``log_evidence_ratio``,
-    ``relaxed``, ``fit_time_s``, ``acq_time_s``.
+    ``relaxed``, ``memory_readings`` (the learned :math:`\tau`), ``fit_time_s``,
+    ``acq_time_s``.
     """
 
     name = "pigp-physics"
+    #: Units of :meth:`tracked` (the loss rate and the skew-quadrupole currents of SPEAR3).
+    objective_unit, knob_unit = "mA/min", "A"
 
     def __init__(
         self,
@@ -166,6 +191,7 @@ class PhysicsModelBO(BayesianOptimizer):
         n_starts: int = PHYSICS_DEFAULTS["n_starts"],
         info_every: int = PHYSICS_DEFAULTS["info_every"],
         schedule: str | None = None,
+        track_schedule: str = PHYSICS_DEFAULTS["track_schedule"],
         seed: int = 0,
         travel_limit=None,
         maximize: bool = True,
@@ -178,18 +204,20 @@ class PhysicsModelBO(BayesianOptimizer):
         region = TrustRegion(bounds, step_limit, "best_mean", travel_limit)
         search = MultiStartLBFGSB(n_starts, maxiter=200)
         posterior = PhysicsFormPosterior(prior, bounds, **posterior_options)
+        letters = {"u": ucb, "m": UCB(0.0), "i": CentreInformation()}
+        letters.update(c=CorrelatedCentreInformation(), e=ExpectedCentreInformation())
         if schedule is None:
             acquisition = Alternating(ucb, CentreInformation(), info_every)
         else:
-            letters = {"u": ucb, "m": UCB(0.0), "i": CentreInformation()}
-            letters.update(c=CorrelatedCentreInformation(), e=ExpectedCentreInformation())
             acquisition = Schedule(letters, schedule)
+        acquisition = WhileDrifting(acquisition, Schedule(letters, track_schedule))
         self.schedule = schedule
         super().__init__(bounds, BOParts(posterior, acquisition, search, region), seed=seed)
         self.prior = prior
         self.beta = ucb.beta
         self.n_starts, self.info_every = search.n_starts, int(info_every)
         self.travel_limit = region.travel_limit
+        self._centre_ref: torch.Tensor | None = None  # the first fit's centre (tracked())
 
     # -- the physics posterior's state, under the names of the method ---------------------------
     @property
@@ -229,11 +257,39 @@ class PhysicsModelBO(BayesianOptimizer):
         return ((Vmu @ model.shape()) * Vmu).sum(-1) / (model.noise**2 + (V * J).sum(-1))
 
     def ask(self) -> torch.Tensor:
-        """Fit the physics form to all data, maximize the UCB (or the centre information) in the
-        trust box; returns ``d``."""
+        """Fit the physics form to the remembered readings, maximize the UCB (or the centre
+        information) in the trust box; returns ``d``."""
         x = super().ask()
         self.last_info["inform"] = isinstance(self.parts.acquisition.last, CentreInformation)
+        if self._centre_ref is None:
+            self._centre_ref = self.model.center()
         return x
+
+    def recommend(self) -> torch.Tensor:
+        r"""The current estimate of the best setting (``d``): the fitted form's optimum in the
+        knob box (:meth:`~pigp_torch.models.InverseSqrtPeakModel.box_optimum`, the fitted
+        centre when it lies inside), which follows a drifting machine through the learned
+        memory; the best reading before the first fit."""
+        if self.model.theta is None:
+            return self.best()[0]
+        return self.model.box_optimum()[0]
+
+    def tracked(self) -> dict[str, tuple[float, str]]:
+        r"""The tracked unknowns now, name -> ``(value, unit)``: ``peak`` the fitted peak
+        :math:`f_\infty + \hat c^{-1/2}` (:attr:`objective_unit`), ``centre_moved`` the
+        Euclidean distance of the fitted centre from the first fit's (:attr:`knob_unit`) and
+        ``remembered`` the readings the fit remembers, :math:`\sum_i w_i` (readings); ``{}``
+        before the first fit."""
+        if self.model.theta is None or self._centre_ref is None:
+            return {}
+        moved = float(torch.linalg.vector_norm(self.model.center() - self._centre_ref))
+        w = self.model.weights
+        kept = float(self.model._X.shape[0] if w is None else w.sum())
+        return {
+            "peak": (self.model.peak(), self.objective_unit),
+            "centre_moved": (moved, self.knob_unit),
+            "remembered": (kept, "readings"),
+        }
 
 
 #: Attributes of :class:`PhysicsModelBO` read from its posterior.

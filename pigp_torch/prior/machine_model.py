@@ -17,7 +17,9 @@ whose model is differentiable (a Cheetah segment, a pyAT ring, a page of plain t
 
 :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer` fits the unknowns online and asks
 the model's optimum (``FittedModelOptimizer.from_machine_model``); :func:`prior_from_machine_model`
-makes the paper's prior (:class:`~pigp_torch.prior.PhysicsPrior`) from the same description.
+makes the paper's prior (:class:`~pigp_torch.prior.PhysicsPrior`) from the same description, with
+the ensemble of optima over draws of the unknowns (:func:`machine_optima`) and the physics form's
+peak shape (:func:`machine_peak_shape`) where asked: one code path for every machine kind.
 """
 
 from __future__ import annotations
@@ -25,11 +27,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.prior.peak_shape import mean_shape, peak_shape_at
 
 
 @dataclass
@@ -134,6 +138,7 @@ def prior_from_machine_model(
     goal_background: float | None = None,
     n_starts: int = 16,
     n_samples: int = 1024,
+    peak_shape: bool = False,
 ):
     r"""The paper's physics prior (:class:`~pigp_torch.prior.PhysicsPrior`) from a machine model.
 
@@ -148,6 +153,9 @@ def prior_from_machine_model(
     ``1e-9`` of each knob's range squared on the diagonal, so that it is positive definite)
     is the prior's ``center_cov``: where the optimum of a machine drawn from the ranges tends to
     lie. The provenance records the mean of the draws' optima (``ensemble_mean``, knob units).
+    With ``peak_shape`` as well, the prior's ``peak_shape`` is the mean over the draws of the
+    physics form's shape at each draw's optimum (:func:`machine_peak_shape`,
+    :func:`~pigp_torch.prior.peak_shape.mean_shape`), which ``pigp-physics`` reads.
 
     Args:
         model: the machine model.
@@ -160,6 +168,7 @@ def prior_from_machine_model(
             searches' Sobol samples of the box (the goal far from the optimum).
         n_starts, n_samples: the optimum search's starts and samples
             (:func:`~pigp_torch.prior.prior_from_model`).
+        peak_shape: with ``n_ensemble > 0``, also the ensemble's mean shape (default no).
 
     Returns:
         The :class:`~pigp_torch.prior.PhysicsPrior` (knob units).
@@ -183,11 +192,10 @@ def prior_from_machine_model(
         return -model.goal_at(X, theta0)
 
     provenance = {"machine_model": model.name, "goal_background": g_inf}
-    center_cov = None
+    fields = {}
     if int(n_ensemble) > 0:
-        center_cov, mean = _ensemble_center_cov(model, int(n_ensemble), seed, n_starts)
-        provenance["ensemble_mean"] = mean.tolist()
-        provenance["n_ensemble"] = int(n_ensemble)
+        fields = _ensemble_fields(model, int(n_ensemble), seed, n_starts, peak_shape, g_inf)
+        provenance |= fields.pop("provenance")
     prior = prior_from_model(
         f,
         b,
@@ -199,9 +207,7 @@ def prior_from_machine_model(
         knob_names=model.knob_names,
         provenance=provenance,
     )
-    if center_cov is not None:
-        prior = dataclasses.replace(prior, center_cov=center_cov)
-    return prior
+    return dataclasses.replace(prior, **fields) if fields else prior
 
 
 def _largest_goal(model: MachineModel, theta: Tensor, seed: int, n_samples: int) -> float:
@@ -214,20 +220,93 @@ def _largest_goal(model: MachineModel, theta: Tensor, seed: int, n_samples: int)
     return float(g[torch.isfinite(g)].max())
 
 
-def _ensemble_center_cov(model: MachineModel, n: int, seed: int, n_starts: int):
-    """``(center_cov, mean)`` of the goal's optima for ``n`` seeded draws of the unknowns: their
-    covariance about their mean plus ``1e-9`` of each knob's range squared on the diagonal."""
+class MachineOptima(NamedTuple):
+    """The optima of a machine model over draws of its unknowns (:func:`machine_optima`)."""
+
+    #: ``n x P`` unknowns drawn (:meth:`MachineModel.sample_unknowns`)
+    thetas: Tensor
+    #: ``n x d`` knob settings of the goal's optima (knob units), one per draw
+    centers: Tensor
+    #: ``n x d x d`` peak shapes at the optima (:func:`machine_peak_shape`), or ``None``
+    shapes: Tensor | None
+
+
+def machine_optima(
+    model: MachineModel,
+    n: int,
+    *,
+    seed: int = 0,
+    n_starts: int = 16,
+    shapes: bool = False,
+    goal_background: float | None = None,
+) -> MachineOptima:
+    r"""The ensemble of optima of a machine model: for each of ``n`` seeded draws
+    :math:`\theta_k` of the unknowns (uniform in their ranges), the optimum of the goal in the
+    knob box (multi-start L-BFGS-B, ``n_starts`` Sobol starts, seed ``seed + k``) and, with
+    ``shapes``, the physics form's peak shape there (:func:`machine_peak_shape` at
+    :math:`\theta_k`, background the model's :attr:`MachineModel.goal_background` of
+    :math:`\theta_k`, else ``goal_background``).
+
+    Raises:
+        ValueError: ``shapes`` without a background (neither the model's nor
+            ``goal_background``).
+    """
     from pigp_torch.prior.optimum import find_optimum
 
     b = model.bounds
-    optima = []
-    for k, th in enumerate(model.sample_unknowns(n, seed=seed)):
+    thetas = model.sample_unknowns(n, seed=seed)
+    centers, found = [], []
+    for k, th in enumerate(thetas):
         x, _ = find_optimum(
             lambda X, th=th: -model.goal_at(X, th), b, n_starts=n_starts, seed=int(seed) + k
         )
-        optima.append(x)
-    A = torch.stack(optima)
+        centers.append(x)
+        if shapes:
+            found.append(machine_peak_shape(model, x, th, goal_background=goal_background))
+    return MachineOptima(thetas, torch.stack(centers), torch.stack(found) if shapes else None)
+
+
+def machine_peak_shape(
+    model: MachineModel,
+    x: Tensor,
+    theta: Tensor | None = None,
+    *,
+    goal_background: float | None = None,
+) -> Tensor:
+    r"""The physics form's peak shape :math:`B = \tfrac12 \nabla^2 (f - f_\infty)^{-2}` of the
+    model's objective :math:`f = -\mathrm{goal}(M(x, \theta))` at ``x`` (``d``, knob units),
+    with :math:`f_\infty = -g_\infty`: :func:`~pigp_torch.prior.peak_shape.peak_shape_at`, the
+    code the ring's error ensemble uses too. ``theta`` defaults to the unknowns' centre,
+    :math:`g_\infty` to the model's :attr:`MachineModel.goal_background` at ``theta``, else
+    ``goal_background``. Returns ``d x d`` ((goal unit)\ :sup:`-2` per knob unit squared).
+
+    Raises:
+        ValueError: no background (neither the model's nor ``goal_background``).
+    """
+    theta = model.unknown_center if theta is None else torch.as_tensor(theta, dtype=DTYPE)
+    if model.goal_background is not None:
+        goal_background = model.goal_background(theta)
+    if goal_background is None:
+        raise ValueError(f"machine model {model.name!r} has no goal_background: give one")
+    return peak_shape_at(lambda X: -model.goal_at(X, theta), -float(goal_background), x)
+
+
+def _ensemble_fields(model, n: int, seed: int, n_starts: int, peak_shape: bool, g_inf: float):
+    """``center_cov`` (and with ``peak_shape`` the mean ``peak_shape``) of :func:`machine_optima`
+    for :func:`prior_from_machine_model`, with its ``provenance`` entries."""
+    optima = machine_optima(model, n, seed=seed, n_starts=n_starts, shapes=peak_shape,
+                            goal_background=g_inf)  # fmt: skip
+    center_cov, mean = _center_cov(optima.centers, model.bounds)
+    fields = {"center_cov": center_cov}
+    if peak_shape:
+        fields["peak_shape"] = mean_shape(optima.shapes)
+    return fields | {"provenance": {"ensemble_mean": mean.tolist(), "n_ensemble": n}}
+
+
+def _center_cov(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """``(center_cov, mean)`` of ``n x d`` optima: their covariance about their mean plus
+    ``1e-9`` of each knob's range squared (``b``: ``2 x d`` bounds) on the diagonal."""
     mean = A.mean(0)
     dev = A - mean
     jitter = 1e-9 * (b[1] - b[0]).square()
-    return dev.T @ dev / max(len(optima) - 1, 1) + torch.diag(jitter), mean
+    return dev.T @ dev / max(len(A) - 1, 1) + torch.diag(jitter), mean

@@ -7,7 +7,8 @@ r"""A live page of an online run: ``pigp optimize --dashboard``.
   and the best so far with the objective's unit, the largest knob move with the knobs' unit, the
   run's status, two plots with numbered axes and units (the readings and the best so far against
   the evaluation; every knob's setting against the evaluation, each in its own colour, with the
-  bounds), a table of the knobs' last settings and the run's notices;
+  bounds), the readings against wall-clock time and the optimizer's tracked unknowns against
+  time (one plot per unit), a table of the knobs' last settings and the run's notices;
 * ``/state.json`` — :func:`run_state` of the run log, read afresh at every request (the log is
   the only channel between the run and the page: the optimizer is never touched).
 
@@ -35,6 +36,7 @@ from pigp_torch._utils.units import display_unit
 from pigp_torch.data.runlog import read_log
 from pigp_torch.loop.config.schema import logged_units
 from pigp_torch.reporting.dashboard_page import PAGE, page_html  # noqa: F401  (re-exported)
+from pigp_torch.reporting.timeline import timeline
 
 #: Hosts the dashboard may listen on.
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -70,7 +72,9 @@ def run_state(path: str | Path) -> dict:
         evaluation (``None`` before the second), ``x`` the knob settings of every evaluation (``n x
         d``, knob units), ``bounds`` ``[lower, upper]`` lists or ``None``, ``status`` the last end
         record's status or ``"running"`` (``"waiting"`` before the log exists), ``ended`` whether
-        the log has an end record, ``notices`` the run's events.
+        the log has an end record, ``notices`` the run's events; ``t``, ``time_unit`` and
+        ``tracked``: the readings' times and the tracked unknowns
+        (:func:`~pigp_torch.reporting.timeline.timeline`).
     """
     path = Path(path)
     if not path.exists():
@@ -117,6 +121,7 @@ def run_state(path: str | Path) -> dict:
         "knob_unit": knob_unit,
         "knob_units": h.get("knob_units"),
         "notices": _notices(records),
+        **timeline(records.evaluations),  # t, time_unit, tracked: the run against time
     }
 
 

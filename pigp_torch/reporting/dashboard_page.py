@@ -24,6 +24,8 @@ td{padding:0 1em 0 0} svg{border:1px solid #ccc;background:#fff;margin:0.3em 0}
 <div style="display:flex;gap:1em;align-items:flex-start">
 <svg id="knobs" width="760" height="260"></svg>
 <table id="knobtable" style="font-size:0.85em"></table></div>
+<svg id="timeplot" width="760" height="260"></svg>
+<div id="tracked"></div>
 <h3>notices</h3><ul id="notices"><li>none</li></ul>
 <p style="color:#888">updated <span id="updates">0</span> times; steps seen:
 <span id="seen"></span></p>
@@ -119,6 +121,38 @@ function draw(s) {
       (per ? '<td>' + esc(per[i]) + '</td>' : '') + '</tr>';
   });
   document.getElementById("knobtable").innerHTML = rows;
+  drawTime(s);
+}
+// the readings and the tracked unknowns (one plot per unit) against wall-clock time
+function drawTime(s) {
+  const ok = (s.t || []).map((t, i) => t !== null ? i : -1).filter(i => i >= 0);
+  if (!ok.length) { return; }
+  const ts = ok.map(i => s.t[i]), tu = s.time_unit || "s";
+  const t1 = Math.max(ts[ts.length - 1], ts[0] + 1e-9), ys = ok.map(i => s.y[i]);
+  chart("timeplot", [{xs: ts, ys: ys, color: "#1f77b4", dots: true}], ts[0], t1,
+        Math.min(...ys), Math.max(...ys), "time since the first reading (" + tu + ")",
+        "objective (" + (s.objective_unit || "") + ")", [],
+        '<tspan fill="#1f77b4">&#9679; readings against time</tspan>');
+  const groups = {};
+  for (const [name, e] of Object.entries(s.tracked || {})) {
+    (groups[e.unit] = groups[e.unit] || []).push(name);
+  }
+  const units = Object.keys(groups), box = document.getElementById("tracked");
+  box.innerHTML = units.map((u, k) =>
+    '<svg id="tracked' + k + '" width="760" height="220"></svg>').join("");
+  units.forEach((u, k) => {
+    const series = groups[u].map((name, j) => {
+      const v = s.tracked[name].values, idx = ok.filter(i => v[i] !== null);
+      return {xs: idx.map(i => s.t[i]), ys: idx.map(i => v[i]), color: COLORS[(2 * j) % 20],
+              name: name};
+    });
+    const vals = [].concat(...series.map(e => e.ys));
+    if (!vals.length) { return; }
+    chart("tracked" + k, series, ts[0], t1, Math.min(...vals), Math.max(...vals),
+          "time since the first reading (" + tu + ")", "tracked (" + u + ")", [],
+          series.map(e => '<tspan fill="' + e.color + '">&#8212; ' + esc(e.name) +
+                     '</tspan>').join("   "));
+  });
 }
 function show(s) {
   const yu = s.objective_unit ? " " + s.objective_unit : "";

@@ -150,6 +150,21 @@ def plot_run(data: dict, path: str | Path) -> Path:
     return path
 
 
+def plot_time(data: dict, path: str | Path) -> Path:
+    """Draw the run against wall-clock time (:func:`~pigp_torch.reporting.timeline.draw_time`,
+    readings in the unit a person reads) into a PNG at ``path``; returns it."""
+    import matplotlib.pyplot as plt
+
+    from pigp_torch.reporting.timeline import draw_time
+
+    fig, _ = draw_time(in_display_units(data))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def plot_compare(data: dict, path: str | Path) -> Path:
     """Draw :func:`compare_report`'s data into a PNG at ``path``; returns the path."""
     import matplotlib

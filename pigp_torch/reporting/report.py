@@ -47,7 +47,9 @@ from pigp_torch.reporting.figures import (  # noqa: F401
     in_display_units,
     plot_compare,
     plot_run,
+    plot_time,
 )
+from pigp_torch.reporting.timeline import timeline
 
 
 def _load_run_config(records):
@@ -107,7 +109,9 @@ def run_report(
         true optimum within the run's bounds; else ``None``), ``fit``
         (:func:`_fitted_optimum` or ``None``), ``notices`` (list of strings), ``budget``,
         ``status``, ``observables`` (``n x m`` what each reading also measured, or ``None``),
-        ``observable_names`` and ``observable_units`` (the header's, ``[]`` without).
+        ``observable_names`` and ``observable_units`` (the header's, ``[]`` without),
+        ``timeline`` (:func:`~pigp_torch.reporting.timeline.timeline`: the readings' times and
+        the tracked unknowns).
 
     Raises:
         FileNotFoundError: no such log.
@@ -133,22 +137,14 @@ def _run_report(path, records, noise, fit, say) -> dict:
     objective_unit, unit = logged_units(h)
     true = optimum = None
     sigma = noise
-    if config is not None and config.machine.kind == "sim":
-        from pigp_torch.loop.run import build_machine
-
-        say(f"building the simulated ring (error seed {config.machine.error_seed}) ...")
-        machine = build_machine(config)
-        sigma = float(config.machine.noise)
-        true = torch.as_tensor(machine.true_value(X), dtype=DTYPE)
-        if maximize and bounds is not None:
+    truth = _true_objective(config, say)
+    if truth is not None:
+        sigma = sigma if truth.noise is None else truth.noise
+        true = torch.as_tensor(truth.values(X), dtype=DTYPE)
+        if truth.peak is not None and maximize and bounds is not None:
             say(f"searching its true optimum within the run's bounds (L-BFGS-B from the run's "
                 f"{min(OPTIMUM_STARTS, len(X))} best settings) ...")  # fmt: skip
-            optimum = _true_optimum(machine, bounds, X, true)
-    elif config is not None and config.machine.kind == "ares-sim":
-        from pigp_torch.loop.run import build_machine
-
-        machine = build_machine(config)  # the simulated linac: its objective of the true beam
-        true = machine.objective_of(machine.true_observables(X)).to(DTYPE)
+            optimum = _true_optimum(truth.peak, bounds, X, true)
     elif config is not None and config.prior is not None and sigma is None:
         from pigp_torch.prior import PhysicsPrior
 
@@ -182,6 +178,7 @@ def _run_report(path, records, noise, fit, say) -> dict:
         "observables": records.observables(),
         "observable_names": records.observable_names,
         "observable_units": records.observable_units,
+        "timeline": timeline(records.evaluations),
     }
 
 
@@ -189,8 +186,19 @@ def _run_report(path, records, noise, fit, say) -> dict:
 OPTIMUM_STARTS = 3
 
 
-def _true_optimum(machine, bounds: torch.Tensor, X: torch.Tensor, true: torch.Tensor):
-    """The simulated machine's largest noise-free value within the run's ``bounds``: L-BFGS-B
+def _true_objective(config, say):
+    """The noise-free objective of the run's simulated machine, from its machine kind
+    (:meth:`~pigp_torch.machines.MachineKind.true_objective`); ``None`` without one (a live
+    machine, or a log without its configuration)."""
+    from pigp_torch.loop.run import machine_kind
+
+    kind = None if config is None else machine_kind(config)
+    return None if kind is None else kind.true_objective(config, say)
+
+
+def _true_optimum(peak, bounds: torch.Tensor, X: torch.Tensor, true: torch.Tensor):
+    """The largest value of the simulated machine's differentiable noise-free objective
+    ``peak`` within the run's ``bounds``: L-BFGS-B
     (:func:`~pigp_torch._utils.multistart.find_optimum`) from the :data:`OPTIMUM_STARTS`
     settings of the run (``X``, ``n x d``) with the largest noise-free values ``true`` (``n``).
 
@@ -204,11 +212,8 @@ def _true_optimum(machine, bounds: torch.Tensor, X: torch.Tensor, true: torch.Te
     """
     from pigp_torch._utils.multistart import find_optimum
 
-    def f(x):
-        return machine.sim.sim.loss_rate(x)  # the _BoundedSim's ring (differentiable)
-
     best = true.argsort(descending=True)[:OPTIMUM_STARTS]
-    return find_optimum(f, bounds, n_starts=0, x_init=X[best])
+    return find_optimum(peak, bounds, n_starts=0, x_init=X[best])
 
 
 def _notices(records, X: torch.Tensor, bounds, names) -> list[str]:
@@ -261,15 +266,20 @@ def compare_report(folder: str | Path) -> dict:
     return {"path": folder, "runs": df, "notices": notes}
 
 
-def html_page(title: str, png: Path, lines: list[str]) -> str:
-    """A self-contained HTML page: ``title``, the PNG embedded as base64, ``lines`` as text."""
-    data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
+def html_page(title: str, png: Path | list[Path], lines: list[str]) -> str:
+    """A self-contained HTML page: ``title``, the PNG(s) embedded as base64, ``lines`` as
+    text."""
+    pngs = [png] if isinstance(png, (str, Path)) else list(png)
+    images = "\n".join(
+        "<img alt='report' style='max-width:100%' src='data:image/png;base64,"
+        f"{base64.b64encode(Path(p).read_bytes()).decode('ascii')}'>"
+        for p in pngs
+    )
     items = "\n".join(f"<li>{html.escape(s)}</li>" for s in lines)
     return (
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
         f"<title>{html.escape(title)}</title></head>\n<body style='font-family:sans-serif'>\n"
-        f"<h1>{html.escape(title)}</h1>\n<img alt='report' style='max-width:100%' "
-        f"src='data:image/png;base64,{data}'>\n<ul style='font-family:monospace'>\n{items}\n"
+        f"<h1>{html.escape(title)}</h1>\n{images}\n<ul style='font-family:monospace'>\n{items}\n"
         "</ul>\n</body></html>\n"
     )
 
@@ -286,7 +296,9 @@ def write_report(
         noise, progress: as in :func:`run_report`.
 
     Returns:
-        ``(png, html)`` paths.
+        ``(png, html)`` paths (a run log's page also embeds ``<out>_time.png``: the run
+        against wall-clock time with the tracked unknowns,
+        :func:`~pigp_torch.reporting.timeline.draw_time`).
 
     Raises:
         FileNotFoundError, ValueError: as :func:`run_report` / :func:`compare_report`.
@@ -302,10 +314,12 @@ def write_report(
         data = run_report(target, noise=noise, progress=progress)
         base = Path(out) if out is not None else target.with_name(target.stem + "_report")
         png = plot_run(data, base.with_suffix(".png"))
+        pngs = [png, plot_time(data, base.with_name(base.name + "_time.png"))]
         title = f"pigp run: {target.name} ({data['method']})"
         lines = [*_summary(data), *data["notices"]]
     page = base.with_suffix(".html")
-    page.write_text(html_page(title, png, lines), encoding="utf-8")
+    page.write_text(html_page(title, pngs if not target.is_dir() else png, lines),
+                    encoding="utf-8")  # fmt: skip
     return png, page
 
 

@@ -130,3 +130,15 @@ def ring():
     from pigp_torch.simulation import Spear3Coupling
 
     return Spear3Coupling(IOC_SEED)
+
+
+#: Run-file keys of each run mode for the fault tests: a track run (ended by its count, its
+#: time limit far away) with its default end, restore: estimate; after a failure both modes set
+#: the initial knobs back, which is what the parametrized tests assert at the IOC.
+RUN_MODES = {"optimize": {}, "track": {"mode": "track", "time_limit": "10 min"}}
+
+
+@pytest.fixture(params=list(RUN_MODES))
+def run_mode(request) -> dict:
+    """The run-file keys of a one-shot run and of a track run (the test runs in both)."""
+    return dict(RUN_MODES[request.param])

@@ -219,16 +219,18 @@ def test_a_readback_offset_leaves_the_setpoints_exact(ioc, probe, ring, tmp_path
 
 
 def test_a_stuck_readback_never_breaks_the_step_limit(ioc, probe, ring, tmp_path, capsys,
-                                                      with_optimize, monkeypatch):  # fmt: skip
+                                                      with_optimize, monkeypatch,
+                                                      run_mode):  # fmt: skip
     """The second knob's readback stops following (a stuck supply) mid-run: the next set fails
     its readback check; the restore ramps the SETPOINTS back from the last acknowledged ones
     within max_step (never from the stuck readback), the readback check then fails, and the run
-    exits 3 printing the last acknowledged setpoint — which is what the IOC holds."""
+    exits 3 printing the last acknowledged setpoint — which is what the IOC holds (a track run
+    too: after a failure it restores the initial knobs, not its estimate)."""
     start = start_of(ring)
     probe.write_many(ioc.setpoint_pvs[:2], start)
     mark = ioc.n_puts()
     machine = {"kind": "epics", "settle_time": 0.1, "timeout": 0.4, "stale_timeout": 1.0}
-    config = write_config(tmp_path, ioc, ring, machine=machine)
+    config = write_config(tmp_path, ioc, ring, machine=machine, **run_mode)
     real, stuck = EpicsMachine.read, []
 
     def read(self):  # the first read after the second knob left its start: it sticks there

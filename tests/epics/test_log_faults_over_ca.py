@@ -61,14 +61,14 @@ def test_a_full_disk_at_the_start_puts_nothing(ioc, probe, ring, tmp_path, capsy
 
 
 def test_a_full_disk_mid_run_restores_the_ioc_exactly(
-    ioc, probe, ring, tmp_path, capsys, monkeypatch
+    ioc, probe, ring, tmp_path, capsys, monkeypatch, run_mode
 ):
     """The disk fills after 12 records: exit 1, one line naming the reason, the summary, and the
-    IOC's setpoints back at their initial values bit for bit."""
+    IOC's setpoints back at their initial values bit for bit (in a track run too)."""
     start = start_of(ring)
     probe.write_many(ioc.setpoint_pvs[:2], start)
     monkeypatch.setattr(writer_module, "os", DiskFull(12))
-    config = write_config(tmp_path, ioc, ring, budget=40)
+    config = write_config(tmp_path, ioc, ring, budget=40, **run_mode)
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "pigp optimize: run stopped: could not write to the run log" in captured.err
@@ -81,7 +81,7 @@ def test_a_full_disk_mid_run_restores_the_ioc_exactly(
 
 
 def test_a_full_disk_and_a_supply_that_stops_following_exit_3(
-    ioc, probe, ring, tmp_path, capsys, monkeypatch
+    ioc, probe, ring, tmp_path, capsys, monkeypatch, run_mode
 ):
     """At the moment the disk fills the readbacks start lagging 5 s behind their setpoints (a
     supply that stops following): the restore cannot be verified and the end record cannot be
@@ -92,7 +92,8 @@ def test_a_full_disk_and_a_supply_that_stops_following_exit_3(
         writer_module, "os", DiskFull(12, on_full=lambda: probe.write(ioc.readback_delay_pv, 5.0))
     )
     machine = {"kind": "epics", "settle_time": 0.1, "timeout": 0.4, "stale_timeout": 1.0}
-    config = write_config(tmp_path, ioc, ring, budget=40, machine=machine, restore_attempts=2)
+    config = write_config(tmp_path, ioc, ring, budget=40, machine=machine, restore_attempts=2,
+                          **run_mode)  # fmt: skip
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 3
     captured = capsys.readouterr()
     assert "the knobs were NOT restored (exit status 3)" in captured.err
@@ -112,12 +113,16 @@ def edit_first(path, kind, change) -> int:
     return k + 1
 
 
-def test_an_edited_initial_knob_is_refused_and_nothing_is_put(ioc, probe, ring, tmp_path, capsys):
+def test_an_edited_initial_knob_is_refused_and_nothing_is_put(
+    ioc, probe, ring, tmp_path, capsys, run_mode
+):
     """A finished run's first start record edited to initial knobs at the upper bounds (the
-    restore target): --resume exits 2 naming that line; the IOC receives no put."""
+    restore target): --resume exits 2 naming that line; the IOC receives no put (a track run
+    too, here ending at its initial knobs)."""
     start = start_of(ring)
     probe.write_many(ioc.setpoint_pvs[:2], start)
-    config = write_config(tmp_path, ioc, ring, budget=4)
+    run_mode["restore"] = "initial"
+    config = write_config(tmp_path, ioc, ring, budget=4, **run_mode)
     assert cli.main(["optimize", "--config", config, "--quiet"]) == 0
     assert torch.equal(setpoints(ioc, probe), start)
     log = tmp_path / "run.jsonl"
@@ -125,7 +130,7 @@ def test_an_edited_initial_knob_is_refused_and_nothing_is_put(ioc, probe, ring, 
     line = edit_first(log, "start", lambda r: r.update(initial_knobs=upper))
     capsys.readouterr()
     stamps = put_stamps(ioc, probe)
-    more = write_config(tmp_path, ioc, ring, name="more.yaml", budget=8)
+    more = write_config(tmp_path, ioc, ring, name="more.yaml", budget=8, **run_mode)
     assert cli.main(["optimize", "--resume", str(log), "--config", more, "--quiet"]) == 2
     assert f"run.jsonl:{line}: the record does not match the log's hash chain" in (
         capsys.readouterr().err

@@ -177,15 +177,17 @@ def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, ring, tmp_path
 
 
 @pytest.mark.parametrize("at", ["start", "mid-run"])
-def test_an_always_invalid_objective_stops_the_run(alarms, probe, ring, tmp_path, capsys, at):
+def test_an_always_invalid_objective_stops_the_run(alarms, probe, ring, tmp_path, capsys, at,
+                                                   run_mode):  # fmt: skip
     """The loss rate is INVALID on every read (from before the run, or from the 9th read on):
     after the bounded re-reads (read_retries 2: 3 reads) the run stops with exit 1 and one line
     naming the PV and its severity; the knobs are where the run found them (from the start: the
-    noise measurement reads before anything moves, and no put changed a setpoint)."""
+    noise measurement reads before anything moves, and no put changed a setpoint); a track run
+    likewise (after a failure it restores the initial knobs, not its estimate)."""
     ioc = alarms
     probe.write_many(ioc.setpoint_pvs[:3], START)
     mark = ioc.n_puts()
-    config = write_config(tmp_path, ioc, ring)
+    config = write_config(tmp_path, ioc, ring, **run_mode)
     always = alarm_pv(ioc, ALARM_READINGS_SUFFIX)
     if at == "start":
         probe.write(always, -1)

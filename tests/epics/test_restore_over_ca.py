@@ -112,7 +112,8 @@ def test_a_readback_offset_past_a_bound_clips_and_the_ioc_lives(ioc, probe, ring
     assert ioc.alive()
 
 
-def test_a_stall_shorter_than_restore_timeout_ends_restored(ioc, probe, ring, tmp_path, capsys):
+def test_a_stall_shorter_than_restore_timeout_ends_restored(ioc, probe, ring, tmp_path, capsys,
+                                                            run_mode):  # fmt: skip
     """After 4 puts the IOC stalls every put for 3 s (each then refused: an IOC restarting)
     and the run aborts; with restore_timeout 8 s the restore retries through the stall and sets
     the knobs exactly back (exit 1); with restore_timeout 0 and one attempt it ends in exit 3."""
@@ -123,7 +124,8 @@ def test_a_stall_shorter_than_restore_timeout_ends_restored(ioc, probe, ring, tm
         log = f"{name}.jsonl"
         watcher = after_puts(ioc, 4, lambda: probe.write(ioc.stall_puts_pv, 3.0))
         config = write_config(tmp_path, ioc, ring, name=f"{name}.yaml", budget=12, log=log,
-                              restore_timeout=window, restore_attempts=attempts)  # fmt: skip
+                              restore_timeout=window, restore_attempts=attempts,
+                              **run_mode)  # fmt: skip
         results[name] = cli.main(["optimize", "--config", config, "--quiet"])
         watcher.join(timeout=5.0)
         results[name + "_sp"] = probe.read_many(ioc.setpoint_pvs[:2])
@@ -136,7 +138,9 @@ def test_a_stall_shorter_than_restore_timeout_ends_restored(ioc, probe, ring, tm
 
 
 @pytest.mark.slow  # an IOC of its own, killed and restarted: ~45 s on a busy host
-def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(tmp_path, capsys):
+def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(
+    tmp_path, capsys, run_mode
+):
     """The IOC is killed after 6 puts and restarted on its port 3 s later (its knobs at their
     power-on zeros): the run aborts, the restore retries through the restart (restore_timeout
     30 s) and puts the knobs exactly back at the start (exit 1); caproto's reconnection records
@@ -161,7 +165,7 @@ def test_an_ioc_restart_within_restore_timeout_ends_restored_in_one_line_each(tm
             box["handle"] = box["ioc"].__enter__()
 
         watcher = after_puts(own, 6, restart)
-        config = write_config(tmp_path, own, ring, budget=30, restore_timeout=30.0)
+        config = write_config(tmp_path, own, ring, budget=30, restore_timeout=30.0, **run_mode)
         try:
             code = cli.main(["optimize", "--config", config, "--quiet"])
             watcher.join(timeout=60.0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from pigp_torch.simulation.linear_model import (
+from pigp_torch.machines.ring.linear_model import (
     SegmentModel,
     _congruence,
     _knob_cols,
@@ -15,7 +15,7 @@ from pigp_torch.simulation.linear_model import (
     equilibrium,
     equilibrium_chunked,
 )
-from pigp_torch.simulation.lyapunov import J6, eigen_emittances, lyapunov_doubling
+from pigp_torch.machines.ring.lyapunov import J6, eigen_emittances, lyapunov_doubling
 
 J = torch.as_tensor(J6)
 
@@ -190,7 +190,7 @@ def ring_beam_matrices(sim, n, seed):
     """Equilibrium beam matrices of the ring at ``n`` random settings (via the torch path)."""
     m, x = sim._m["model"], settings(sim, n, seed)[:, sim._m["order"]]
     cap = {}
-    import pigp_torch.simulation.linear_model as lm
+    import pigp_torch.machines.ring.linear_model as lm
 
     orig = lm.lyapunov_doubling
 

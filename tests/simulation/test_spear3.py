@@ -173,7 +173,7 @@ def test_knob_setting_is_the_thin_winding_strength(sim):
 
 def test_chunked_evaluation_equals_row_by_row(sim, monkeypatch):
     """Large batches are evaluated in chunks; the result equals a one-piece evaluation (1e-12)."""
-    import pigp_torch.simulation.ring as ring
+    import pigp_torch.machines.ring.ring as ring
 
     X = random_settings(7, sim.dim, seed=41)
     whole = sim.evaluate(X)

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
+from pigp_torch.machines.ring.throughput import gpu_status, measure_throughput
 from pigp_torch.simulation import Spear3Coupling
-from pigp_torch.simulation.throughput import gpu_status, measure_throughput
 
 requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
@@ -60,7 +60,7 @@ def test_bad_arguments_raise(sim):
 
 def test_threaded_evaluate_equals_serial(sim):
     """evaluate() on 2 worker threads (its default when torch has 2 threads) = 1 worker."""
-    import pigp_torch.simulation.ring as spear3
+    import pigp_torch.machines.ring.ring as spear3
 
     X = random_settings(sim, 40, seed=1)
     old = spear3.CHUNK

@@ -20,7 +20,9 @@ A run log is a JSON-lines file (one JSON object per line), append-only. Record t
   ``reading`` (what the machine reports about the reading, e.g. the objective PV's timestamps)
   and, from a machine that measures more than its objective, ``observables`` (the values of its
   last reading, in the order of the header's ``observable_names``, units
-  ``observable_units``; e.g. a screen's four beam numbers in m).
+  ``observable_units``; e.g. a screen's four beam numbers in m); in a track run (``mode:
+  track``), ``tracked``: the optimizer's tracked unknowns ``{name: [value, unit]}`` when the
+  setting was asked.
 * ``end`` (one per session that ended in Python): ``status`` (``"completed"``,
   ``"interrupted"``, ``"aborted"`` or ``"failed"``), ``reason``, ``restored_to``,
   ``final_knobs`` (the readback after the restore), ``best``, ``n_evaluations`` and, on a machine,

@@ -101,7 +101,7 @@ class SimMachineConfig(Section):
             ``RingSpec(lattice, knob_names, calibration, knob_limit, knob_unit)`` with
             ``knob_calibration`` in knob order. The loss-rate map is left to the ring (the
             ``benchmark`` map depends on the built ring's own, see
-            :func:`~pigp_torch.loop.run.simulated_ring`).
+            :func:`~pigp_torch.machines.ring.run.simulated_ring`).
 
         Raises:
             KeyError: ``knob_calibration`` is a mapping without one of ``knob_names``.

@@ -21,7 +21,9 @@ A run file (YAML or JSON) names everything a run on a machine needs; it is valid
     max_step: 0.1                 # required: fraction of each knob's half-range, {knob: value},
                                   # or the word unlimited (no step limit, deliberately)
     log: runs/sim.jsonl           # the run log (JSON lines)
-    restore: initial              # or best (set the best observed point at the end)
+    restore: initial              # or best (set the best observed point at the end), current
+    # mode: track                 # keep it tuned until stopped: pigp_torch.loop.config.track
+    # time_limit: 8 h             #   (the track keys: time_limit, restore: estimate, best_window)
     restore_timeout: 30           # s the restore keeps trying (a stall, an IOC restart)
     read_retries: 2
     # objective_noise: 0.04       # one reading's noise; epics without it: measured at the
@@ -81,6 +83,7 @@ from pigp_torch.loop.config.machines import (
     _Section,
 )
 from pigp_torch.loop.config.sections import MachineConfig
+from pigp_torch.loop.config.track import check_mode, duration_s
 
 if TYPE_CHECKING:
     import torch
@@ -127,7 +130,12 @@ class RunConfig(_Section):
         max_step: largest change of a knob per ``set`` (required): a fraction of each knob's
             half-range, ``{knob: absolute}``, or ``"unlimited"`` (no step limit).
         log: the run log to write.
-        restore: ``"initial"`` (put the knobs back) or ``"best"`` (set the best observed point).
+        restore: ``"initial"`` (put the knobs back), ``"best"`` (set the best observed point),
+            ``"current"`` (leave them), or in a track run ``"estimate"`` (its default).
+        mode: ``"optimize"`` (default: ``budget`` evaluations) or ``"track"`` (until stopped,
+            ``time_limit`` or ``budget`` readings: :mod:`~pigp_torch.loop.config.track`).
+        time_limit: a track run's wall-clock limit, a number and a unit (``"8 h"``).
+        best_window: a track run's ``restore: best`` picks among this many last readings.
         read_retries: extra read attempts after an invalid reading (the loop's; the EPICS
             machine is given none of its own, so this is the total).
         retry_interval: seconds before each extra read attempt.
@@ -162,7 +170,10 @@ class RunConfig(_Section):
     budget: Integer = Field(ge=1)
     max_step: Number | dict[str, Number] | Literal["unlimited"]
     log: Path
-    restore: Literal["initial", "best"] = "initial"
+    restore: Literal["initial", "best", "current", "estimate"] | None = None
+    mode: Literal["optimize", "track"] = "optimize"
+    time_limit: str | None = None
+    best_window: Integer = Field(20, ge=1, le=100_000)
     read_retries: Integer = Field(2, ge=0)
     retry_interval: Number = Field(0.1, ge=0.0)
     objective_floor: Number | None = None
@@ -220,6 +231,7 @@ class RunConfig(_Section):
 
     @model_validator(mode="after")
     def _check_run(self) -> RunConfig:
+        self.restore = check_mode(self.mode, self.time_limit, self.restore)
         names = list(self.knobs)
         rng = self.objective_range
         if rng is not None and not rng[0] < rng[1]:
@@ -276,6 +288,10 @@ class RunConfig(_Section):
     @property
     def knob_names(self) -> list[str]:
         return list(self.knobs)
+
+    def time_limit_s(self) -> float | None:
+        """A track run's wall-clock limit in s (``None`` in a one-shot run)."""
+        return None if self.time_limit is None else duration_s(self.time_limit)
 
     def bounds(self) -> torch.Tensor:
         """``2 x d`` knob bounds in knob order."""

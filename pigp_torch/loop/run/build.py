@@ -8,15 +8,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from pigp_torch._utils import DTYPE
 from pigp_torch.data.runlog import file_sha256
 from pigp_torch.loop.config import (
     ConfigError,
     EpicsMachineConfig,
     RunConfig,
-    SimMachineConfig,
     config_digest,
 )
 from pigp_torch.machines import KINDS, MachineKind
@@ -24,37 +20,22 @@ from pigp_torch.methods import METHODS, RunContext
 
 
 def machine_kind(config: RunConfig) -> MachineKind | None:
-    """The machine kind whose run-file section ``config.machine`` is, when it is not one of the
-    loop's own (``sim``, ``epics``); ``None`` for those."""
-    if isinstance(config.machine, (SimMachineConfig, EpicsMachineConfig)):
-        return None
+    """The machine kind whose run-file section ``config.machine`` is (``kind: sim`` the ring's,
+    ``kind: ares-sim`` ARES-EA's); ``None`` for ``kind: epics``, the loop's own (a live
+    machine)."""
     return KINDS.by_run_file_kind(config.machine.kind)
-
-
-class _BoundedSim:
-    """A simulator seen with the run's knob bounds (the simulated machine takes them from it)."""
-
-    def __init__(self, sim, bounds: torch.Tensor) -> None:
-        self.sim = sim
-        self.bounds = bounds
-        self.knob_names = list(sim.knob_names)
-
-    def evaluate(self, x):
-        return self.sim.evaluate(x)
-
-    def __repr__(self) -> str:
-        return f"{self.sim!r} within the run's bounds"
 
 
 def build_optimizer(config: RunConfig, machine=None):
     r"""The configured optimizer (nothing is connected; bad option values raise here).
 
     The registry's builder of ``config.method.name`` with the run's options, bounds, seed and
-    direction; no noise level (each optimizer keeps its own default, or ``noise`` from the
-    options) and no archive (a live machine has none). On a machine kind's section (``kind:
-    ares-sim``) the builder is given the kind's simulated machine (``machine``, or one built from
-    ``config``: a simulation, nothing to connect), whose target the kind's methods read, and the
-    section's reading noise (``noise``; ``None`` when 0).
+    direction, and no archive (a live machine has none). On a machine kind's section (``kind:
+    sim``, ``kind: ares-sim``) the builder is given the kind's simulated machine (``machine``, or
+    one built from ``config``: a simulation, nothing to connect), whose target the kind's methods
+    read, and the reading noise the kind tells its methods
+    (:meth:`~pigp_torch.machines.MachineKind.methods_noise`); otherwise no noise level (each
+    optimizer keeps its own default, or ``noise`` from the options).
 
     Raises:
         ConfigError: the builder refused an option value.
@@ -65,7 +46,7 @@ def build_optimizer(config: RunConfig, machine=None):
     kind = machine_kind(config)
     if kind is not None:
         machine = kind.simulated_machine(config) if machine is None else machine
-        noise = config.machine.noise if config.machine.noise > 0 else None
+        noise = kind.methods_noise(config.machine)
     ctx = RunContext(
         machine=machine,
         prior=config.get_prior(),
@@ -81,71 +62,17 @@ def build_optimizer(config: RunConfig, machine=None):
         raise ConfigError(f"method {name}: {err}") from err
 
 
-def simulated_ring(config: RunConfig):
-    r"""The simulated ring of a ``kind: sim`` run: ``RingSpec.build(error_seed)`` of the section's
-    :meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec` — the SPEAR3 deck ``optics`` with
-    the run's windings (:class:`~pigp_torch.simulation.Spear3Coupling`), or, with
-    ``machine.lattice``, that lattice file with the run's knobs as element names
-    (:class:`~pigp_torch.simulation.RingCoupling`, calibration ``machine.knob_calibration``,
-    range ``±machine.knob_limit`` in ``knob_unit``); with ``machine.loss_map: benchmark`` the
-    loss-rate map that the benchmark gives machine ``error_seed``
-    (:func:`~pigp_torch.bench.protocol.machine_loss_map` of the ring's own map).
-
-    Raises:
-        ConfigError: a knob name the lattice does not have, or a lattice file that does not load.
-    """
-    m = config.machine
-    sim = _ring(config, None)
-    if m.loss_map == "benchmark":
-        from pigp_torch.simulation.calibration import machine_loss_map
-
-        sim = _ring(config, machine_loss_map(m.error_seed, sim.loss_rate_map))
-    return sim
-
-
-def _ring(config: RunConfig, loss_rate_map):
-    m = config.machine
-    spec = m.ring_spec(config.knob_names, config.knob_unit)
-    try:
-        return spec.build(m.error_seed, loss_rate_map=loss_rate_map)
-    except (OSError, ValueError, KeyError) as err:
-        if spec.is_spear3:
-            raise
-        raise ConfigError(f"machine.lattice {m.lattice}: {err}") from err
-
-
 def build_machine(config: RunConfig):
-    r"""Construct (and, for EPICS, connect) the configured machine. Nothing is moved."""
-    names, bounds, m = config.knob_names, config.bounds(), config.machine
+    r"""Construct the configured machine: a machine kind's simulated machine
+    (:meth:`~pigp_torch.machines.MachineKind.simulated_machine`), or connect the EPICS machine.
+    Nothing is moved."""
     kind = machine_kind(config)
     if kind is not None:
         return kind.simulated_machine(config)
-    tolerance = m.tolerance if isinstance(m, EpicsMachineConfig) else None
-    if isinstance(m, EpicsMachineConfig) and m.tolerance_fraction is not None:
+    names, bounds, m = config.knob_names, config.bounds(), config.machine
+    tolerance = m.tolerance
+    if m.tolerance_fraction is not None:
         tolerance = m.tolerance_fraction * (bounds[1] - bounds[0])
-    if isinstance(m, SimMachineConfig):
-        from pigp_torch.machine import SimulatedMachine
-
-        sim = simulated_ring(config)
-        outside = [
-            n
-            for n, lo, hi in zip(names, bounds[0].tolist(), bounds[1].tolist(), strict=True)
-            if lo < float(sim.bounds[0, 0]) or hi > float(sim.bounds[1, 0])
-        ]
-        if outside:
-            raise ConfigError(
-                f"knobs {outside}: bounds outside the simulator's range "
-                f"[{float(sim.bounds[0, 0]):g}, {float(sim.bounds[1, 0]):g}] {config.knob_unit}"
-            )
-        x_init = torch.tensor([(m.x_init or {}).get(n, 0.0) for n in names], dtype=DTYPE)
-        x_init = torch.minimum(torch.maximum(x_init, bounds[0]), bounds[1])  # 0 may lie outside
-        return SimulatedMachine(
-            _BoundedSim(sim, bounds),
-            noise=m.noise,
-            seed=m.seed,
-            max_step=config.machine_max_step(),
-            x_init=x_init,
-        )
     if m.protocol == "pva":
         from pigp_torch.machine.pva import PvaMachine as EpicsMachine  # lazily: needs p4p
     else:
@@ -240,10 +167,17 @@ class RunSetup:
 
     def run(self, *, log=None, resume=None, progress: bool = False, callback=None):
         r"""Run the loop with the configured safety options (ramped moves, read retries, floor,
-        restore, readback check); returns the evaluation table (see :func:`pigp_torch.optimize`).
+        restore, readback check); returns the evaluation table (see :func:`pigp_torch.optimize`;
+        ``mode: track``: :func:`pigp_torch.loop.track`).
         """
-        from pigp_torch.loop import optimize
+        from pigp_torch.loop import optimize, track
 
+        c = self.config
+        if c.mode == "track":  # until stopped, the time limit or budget readings
+            return track(self.machine, self.optimizer, c.budget, time_limit_s=c.time_limit_s(),
+                         end_at=c.restore, recent=c.best_window, method=self.method,
+                         progress=progress, callback=callback, log=log, resume=resume,
+                         options=self.options())  # fmt: skip
         return optimize(
             self.machine,
             self.optimizer,
@@ -265,8 +199,9 @@ class RunSetup:
         from pigp_torch.loop import RunOptions
 
         c = self.config
+        restore = {"current": "none"}.get(c.restore, c.restore)
         return RunOptions(
-            restore=c.restore,
+            restore="initial" if c.mode == "track" else restore,  # a track run: its own end
             read_retries=c.read_retries,
             retry_interval=c.retry_interval,
             objective_floor=c.objective_floor,
@@ -284,13 +219,17 @@ class RunSetup:
         return isinstance(self.config.machine, EpicsMachineConfig) and self.stated_noise() is None
 
     def stated_noise(self) -> float | None:
-        """The noise of one reading the run states: ``objective_noise``, else the simulated
-        machine's noise, else the prior's (``None``: none stated)."""
+        """The noise of one reading the run states: ``objective_noise``, else the noise the
+        machine kind states of its simulated machine
+        (:meth:`~pigp_torch.machines.MachineKind.stated_noise`), else the prior's (``None``: none
+        stated)."""
         c = self.config
         if c.objective_noise is not None:
             return c.objective_noise
-        if isinstance(c.machine, SimMachineConfig) and c.machine.noise > 0:
-            return c.machine.noise
+        kind = machine_kind(c)
+        noise = kind.stated_noise(c.machine) if kind is not None else None
+        if noise is not None:
+            return noise
         prior = c.get_prior()
         noise = prior.noise if prior is not None else None
         return float(noise) if noise else None
@@ -298,9 +237,10 @@ class RunSetup:
 
 def build_run(config: RunConfig) -> RunSetup:
     r"""Build a run from a validated configuration: the prior's provenance, then the optimizer
-    (bad option values raise :class:`ConfigError` here), then — last — the machine. On a machine
-    kind's section (``kind: ares-sim``) the simulated machine comes first (a simulation: nothing
-    is connected or moved), as the kind's methods are built from its target.
+    and the machine. A machine kind's simulated machine (``kind: sim``, ``kind: ares-sim``: a
+    simulation, nothing is connected or moved) is built first, as the kind's methods read it; an
+    EPICS machine last, once the optimizer is built (bad option values raise
+    :class:`ConfigError` before anything connects).
     """
     info = prior_record(config)
     if machine_kind(config) is not None:

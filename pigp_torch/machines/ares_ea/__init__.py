@@ -73,6 +73,21 @@ class AresKind(MachineKind):
 
         return build_ares_machine(config)
 
+    def true_objective(self, config, say):
+        """The simulated linac's objective of the true beam (the machine's noise-free
+        observables); no optimum search, and the report keeps its noise."""
+        from pigp_torch._utils import DTYPE
+        from pigp_torch.machines.kind import TrueObjective
+
+        machine = self.simulated_machine(config)
+        return TrueObjective(lambda X: machine.objective_of(machine.true_observables(X)).to(DTYPE))
+
+    def register_bench(self, bench) -> None:
+        """``pigp bench ares`` (:mod:`.command`)."""
+        from pigp_torch.machines.ares_ea.command import register
+
+        register(None, bench)
+
     def register_methods(self, register) -> None:
         from pigp_torch.machines.ares_ea.methods import register_ares_methods
 

@@ -1,6 +1,6 @@
 r"""The ARES Experimental Area (DESY linac) in Cheetah: five magnets, a beam on a screen.
 
-The segment AREASOLA1 … AREABSCR1 is built from the shipped ``data/ares_ea/lattice.json``:
+The segment AREASOLA1 … AREABSCR1 is built from the shipped ``machines/ares_ea/data/lattice.json``:
 drifts, three thick quadrupoles (AREAMQZM1/2/3, each with a transverse misalignment), a vertical
 and a horizontal corrector (AREAMCVM1, AREAMCHM1) and the screen AREABSCR1 (2448 × 2040 pixels
 of 3.3198 × 2.4469 µm; its own misalignment shifts what it reads). The five knobs, in this order,
@@ -78,7 +78,7 @@ START_SETTING: tuple[float, ...] = (10.0, -10.0, 0.0, 10.0, 0.0)
 
 
 def _data_dir():
-    return resources.files("pigp_torch.data") / "ares_ea"
+    return resources.files("pigp_torch.machines.ares_ea") / "data"
 
 
 def load_lattice(path: str | Path | None = None) -> dict:
@@ -89,7 +89,8 @@ def load_lattice(path: str | Path | None = None) -> dict:
 
 
 def default_trials_path():
-    """The shipped trials 0–149 (``data/ares_ea/trials_000-149.yaml``), as a readable resource."""
+    """The shipped trials 0–149 (``machines/ares_ea/data/trials_000-149.yaml``), as a readable
+    resource."""
     return _data_dir() / "trials_000-149.yaml"
 
 

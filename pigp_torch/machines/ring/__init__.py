@@ -1,13 +1,24 @@
 r"""The storage-ring machine kind: SPEAR3 (the shipped decks, 13 skew windings in A) or any ring
 given as a lattice file, its coupling tuned on the Touschek loss rate.
 
-The ring's simulation library is :mod:`pigp_torch.simulation` (pyAT, the fast linear model, the
-error ensemble); this folder holds what makes it a machine kind: the ring as a
-:class:`~pigp_torch.prior.machine_model.MachineModel` (:mod:`.model`) and the plug-in
-:data:`KIND` that :data:`pigp_torch.machines.KINDS` lists as ``"spear3"``. Its run-file section is
-the loop's ``machine: {kind: sim}`` (:class:`~pigp_torch.loop.config.SimMachineConfig`), its
-benchmark the "spear3-13" protocol (:func:`pigp_torch.bench.run_benchmark`). This module
-imports nothing heavy (the registry imports it to find the kind).
+Everything ring-specific is in this folder:
+
+* the simulation (the only importer of pyAT): the lattice decks (:mod:`.deck`, the element tables
+  in ``data/`` with their provenance), lattices and knobs (:mod:`.lattice`), the seeded coupling
+  errors (:mod:`.errors`), the fast batched differentiable model (:mod:`.linear_model`,
+  :mod:`.lyapunov`), the pyAT reference path (:mod:`.reference`), the calibrations
+  (:mod:`.calibration`), any ring (:class:`.ring.RingCoupling`) and SPEAR3 in amps
+  (:class:`.spear3.Spear3Coupling`), a ring as plain data (:class:`.spec.RingSpec`), the error
+  ensemble of optima (:mod:`.ensemble`) and the model's throughput (:mod:`.throughput`);
+  :mod:`pigp_torch.simulation` keeps the old import paths as aliases;
+* the ring as a :class:`~pigp_torch.prior.machine_model.MachineModel` (:mod:`.model`), its drift
+  families (:mod:`.drift`), and the plug-in :data:`KIND` that :data:`pigp_torch.machines.KINDS`
+  lists as ``"spear3"``.
+
+Its run-file section is ``machine: {kind: sim}``
+(:class:`~pigp_torch.loop.config.SimMachineConfig`), its benchmark the "spear3-13" protocol
+(:func:`pigp_torch.bench.run_benchmark`). This module imports nothing heavy (the registry
+imports it to find the kind).
 """
 
 from __future__ import annotations
@@ -20,8 +31,8 @@ from pigp_torch.machines.kind import MachineKind
 class RingKind(MachineKind):
     r"""The ring kind: ``model(error_seed=0)`` is the model ring's
     :class:`~pigp_torch.prior.machine_model.MachineModel` (:func:`.model.ring_machine_model`),
-    ``simulator(error_seed=1)`` a :class:`~pigp_torch.simulation.Spear3Coupling` (or, with
-    ``ring``, a :class:`~pigp_torch.simulation.spec.RingSpec`'s ring)."""
+    ``simulator(error_seed=1)`` a :class:`~pigp_torch.machines.ring.spear3.Spear3Coupling` (or, with
+    ``ring``, a :class:`~pigp_torch.machines.ring.spec.RingSpec`'s ring)."""
 
     name = "spear3"
     run_file_kind = "sim"
@@ -30,11 +41,11 @@ class RingKind(MachineKind):
 
     def simulator(self, *, error_seed: int = 1, ring=None, **options: Any):
         r"""The simulated ring with error seed ``error_seed``: ``ring.build(error_seed,
-        **options)`` of a :class:`~pigp_torch.simulation.spec.RingSpec`, default
+        **options)`` of a :class:`~pigp_torch.machines.ring.spec.RingSpec`, default
         ``Spear3Coupling(error_seed, **options)`` (``knobs``, ``optics``, ``loss_rate_map``)."""
         if ring is not None:
             return ring.build(int(error_seed), **options)
-        from pigp_torch.simulation import Spear3Coupling
+        from pigp_torch.machines.ring.spear3 import Spear3Coupling
 
         return Spear3Coupling(int(error_seed), **options)
 
@@ -54,11 +65,29 @@ class RingKind(MachineKind):
         return SimMachineConfig
 
     def simulated_machine(self, config):
-        """The simulated ring of a ``kind: sim`` run file
-        (:func:`pigp_torch.loop.run.build_machine`)."""
-        from pigp_torch.loop.run import build_machine
+        """The simulated ring of a ``kind: sim`` run file (:func:`.run.build_ring_machine`)."""
+        from pigp_torch.machines.ring.run import build_ring_machine
 
-        return build_machine(config)
+        return build_ring_machine(config)
+
+    def true_objective(self, config, say):
+        """The simulated ring's noise-free loss rate (mA/min) and its noise; the report searches
+        its maximum with the ring's differentiable loss rate."""
+        from pigp_torch.machines.kind import TrueObjective
+
+        say(f"building the simulated ring (error seed {config.machine.error_seed}) ...")
+        machine = self.simulated_machine(config)
+        ring = machine.sim.sim  # the ring behind the run's bounds (.run.BoundedRing)
+        return TrueObjective(machine.true_value, float(config.machine.noise), ring.loss_rate)
+
+    def methods_noise(self, section) -> None:
+        """``None``: on the simulated ring the methods keep their own noise defaults (or the
+        run file's ``method.options.noise``), as on a live ring."""
+        return None
+
+    def stated_noise(self, section) -> float | None:
+        """The section's ``noise`` (mA/min) when above 0: the loop's re-read checks use it."""
+        return section.noise if section.noise > 0 else None
 
     def benchmark(self, **options: Any):
         """The "spear3-13" benchmark (:func:`pigp_torch.bench.run_benchmark`)."""

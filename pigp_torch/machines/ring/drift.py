@@ -186,7 +186,7 @@ def ring_drift_machine(
     """Machine ``seed`` of ``ring`` (default SPEAR3) with its own loss-rate map, drifting as
     ``family`` with draws of ``draw_seed`` (default ``seed``); noise seed ``seed``."""
     from pigp_torch.bench.machines import benchmark_ring
-    from pigp_torch.simulation.spec import as_ring_spec
+    from pigp_torch.machines.ring.spec import as_ring_spec
 
     sim = benchmark_ring(int(seed), as_ring_spec(ring), True)
     theta = draw_theta(sim, family, int(seed if draw_seed is None else draw_seed))

@@ -1,8 +1,9 @@
 r"""A storage ring as a :class:`~pigp_torch.prior.machine_model.MachineModel`.
 
-The simulated ring (:class:`~pigp_torch.simulation.RingCoupling`, SPEAR3 or any lattice) is seen
-through the fast linear model (:meth:`~pigp_torch.simulation.RingCoupling.evaluate`: batched and
-differentiable in the knobs):
+The simulated ring (:class:`~pigp_torch.machines.ring.ring.RingCoupling`, SPEAR3 or any
+lattice) is seen through the fast linear model
+(:meth:`~pigp_torch.machines.ring.ring.RingCoupling.evaluate`: batched and differentiable in
+the knobs):
 
 * **knobs** :math:`x \in \mathbb R^K`: the skew windings (control units, A for SPEAR3), bounds
   the simulator's (±30 A);
@@ -27,7 +28,7 @@ differentiable in the knobs):
 
 At the centre of the unknowns (:math:`\delta = 0, d = e = 0`) ``observe`` is the model ring's own
 ``evaluate``, so the paper's prior of this model is the one the benchmark computes from
-:meth:`~pigp_torch.simulation.RingCoupling.loss_rate`.
+:meth:`~pigp_torch.machines.ring.ring.RingCoupling.loss_rate`.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ LOSS_MAP_HALF_WIDTH: tuple[float, float] = (0.8, 0.3)
 
 
 def ring_machine_model(sim, coupling_half_width: float | Tensor | None = None) -> MachineModel:
-    r"""The ring ``sim`` (:class:`~pigp_torch.simulation.RingCoupling`) as a machine model
-    (module docstring).
+    r"""The ring ``sim`` (:class:`~pigp_torch.machines.ring.ring.RingCoupling`) as a
+    machine model (module docstring).
 
     Args:
         sim: the model ring (its error seed is the model's, not the machine's).

@@ -16,6 +16,7 @@ from pigp_torch.optimizers.bo.acquisition import (
     ExpectedCentreInformation,
     LogEI,
     Schedule,
+    WhileDrifting,
     analytic,
     botorch_analytic,
 )
@@ -39,6 +40,7 @@ __all__ = [
     "OptimizeAcqf",
     "Schedule",
     "TrustRegion",
+    "WhileDrifting",
     "analytic",
     "botorch_analytic",
     "trust_box",

@@ -248,6 +248,28 @@ class Alternating:
         return chosen.bind(posterior, best_f, step)
 
 
+class WhileDrifting:
+    """``steady`` while the posterior finds the machine static, ``drifting`` while it follows a
+    drift (its ``drifting`` is true: a finite learned memory or a detected step,
+    :class:`~pigp_torch.models.physics_posterior.PhysicsFormPosterior`); :attr:`last` is the
+    acquisition the chosen one bound last (its own ``last`` when it has one).
+
+    Args:
+        steady: the acquisition of a static machine.
+        drifting: the acquisition while tracking.
+    """
+
+    def __init__(self, steady, drifting) -> None:
+        self.steady, self.drifting = steady, drifting
+        self.last = None
+
+    def bind(self, posterior, best_f: float, step: int):
+        chosen = self.drifting if posterior.drifting else self.steady
+        bound = chosen.bind(posterior, best_f, step)
+        self.last = chosen.last if isinstance(chosen, (Alternating, Schedule)) else chosen
+        return bound
+
+
 class Schedule:
     """The acquisition of each ask read from a schedule of letters.
 

@@ -10,7 +10,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils.multistart import find_optimum
-from pigp_torch.simulation import reference as _ref
+from pigp_torch.machines.ring import reference as _ref
 
 
 def calibrate_error_scale(ring, pattern, target_ratio: float) -> float:
@@ -51,7 +51,7 @@ def calibrate_error_scale(ring, pattern, target_ratio: float) -> float:
 
 
 #: the least background f∞ of a calibrated map, as a share of the knobs-off loss rate: SPEAR3's
-#: own share (f∞ = 0.098065 of 0.5 mA/min, :data:`~pigp_torch.simulation.spear3.LOSS_RATE_MAP`),
+#: own share (f∞ = 0.098065 of 0.5 mA/min, :data:`~pigp_torch.machines.ring.spear3.LOSS_RATE_MAP`),
 #: rounded down so that SPEAR3's seed 1 keeps its two-anchor map
 MIN_BACKGROUND_SHARE = 0.196
 
@@ -60,8 +60,8 @@ def calibrate_loss_rate_map(
     sim, off: float = 0.5, best: float = 1.7, min_background_share: float = MIN_BACKGROUND_SHARE
 ):
     r"""``(f_inf, g)`` of ``loss_rate = f_inf + g ⟨1/(σxσy)⟩`` for ``sim`` (a
-    :class:`~pigp_torch.simulation.ring.RingCoupling`): ``off`` mA/min with the knobs at zero, and
-    ``best`` mA/min at its optimum where the ring's knobs can reach that.
+    :class:`~pigp_torch.machines.ring.ring.RingCoupling`): ``off`` mA/min with the knobs at
+    zero, and ``best`` mA/min at its optimum where the ring's knobs can reach that.
 
     With :math:`p_0 = ⟨1/(σ_xσ_y)⟩` at zero knobs and :math:`p^*` its maximum in the knob box,
     the two anchors give :math:`g = (\text{best}-\text{off})/(p^*-p_0)`,

@@ -1,7 +1,7 @@
 r"""``RingCoupling``: vertical emittance and Touschek loss rate of any storage ring vs skew knobs.
 
 A machine = a radiating pyAT ring + thin skew-quadrupole knobs + the coupling errors of one seed
-(:mod:`~pigp_torch.simulation.errors`), scaled so that with every knob at zero
+(:mod:`~pigp_torch.machines.ring.errors`), scaled so that with every knob at zero
 εy/εx = ``target_ratio``.
 
 Knobs are set in **control units** (amps of a skew winding's power supply, by default); inside the
@@ -40,11 +40,11 @@ import torch
 
 from pigp_torch._utils import DTYPE, as_knob_tensor
 from pigp_torch._utils.multistart import find_optimum
-from pigp_torch.simulation import errors as _errors
-from pigp_torch.simulation import reference as _ref
-from pigp_torch.simulation.calibration import calibrate_error_scale, calibrate_loss_rate_map
-from pigp_torch.simulation.lattice import fingerprint, insert_knobs, load_ring
-from pigp_torch.simulation.linear_model import SegmentModel, equilibrium_chunked
+from pigp_torch.machines.ring import errors as _errors
+from pigp_torch.machines.ring import reference as _ref
+from pigp_torch.machines.ring.calibration import calibrate_error_scale, calibrate_loss_rate_map
+from pigp_torch.machines.ring.lattice import fingerprint, insert_knobs, load_ring
+from pigp_torch.machines.ring.linear_model import SegmentModel, equilibrium_chunked
 
 TARGET_RATIO = 0.0071  # skews-off eps_y / eps_x
 CHUNK = 2048  # rows per CPU evaluation (cache-sized)
@@ -177,7 +177,7 @@ class RingCoupling:
         self.loss_rate_map = (float(loss_rate_map[0]), float(loss_rate_map[1]))
         self._models = {}
         self._optimum = None
-        #: the :class:`~pigp_torch.simulation.spec.RingSpec` this machine was built from, if any
+        #: the :class:`~pigp_torch.machines.ring.spec.RingSpec` this machine was built from, if any
         self.spec = None
 
     @property

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spear3 import KNOB_LIMIT_A, Spear3Coupling
+from pigp_torch.machines.ring.ring import RingCoupling
+from pigp_torch.machines.ring.spear3 import KNOB_LIMIT_A, Spear3Coupling
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,7 +125,7 @@ def knob_count(spec: RingSpec) -> int:
     from its deck header)."""
     if not isinstance(spec.knobs, str):
         return len(spec.knobs)
-    from pigp_torch.simulation.spear3 import knob_names_for
+    from pigp_torch.machines.ring.spear3 import knob_names_for
 
     return len(knob_names_for(spec.knobs, spec.optics))
 

@@ -1,6 +1,6 @@
 r"""pyAT reference path: the same observables straight from ``at.ohmi_envelope`` (slow, exact).
 
-Used to validate the fast model (:mod:`pigp_torch.simulation.linear_model`) and to precompute it.
+Used to validate the fast model (:mod:`pigp_torch.machines.ring.linear_model`) and to precompute it.
 """
 
 from __future__ import annotations

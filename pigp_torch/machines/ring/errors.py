@@ -4,8 +4,8 @@ Both are the usual sources of betatron coupling in a storage ring: a quadrupole 
 adds a skew gradient ≈ 2θ·K1, and a sextupole displaced vertically by Δy adds a skew gradient
 K2·Δy (feed-down). Errors are drawn from Gaussians cut at 2.5σ (resampled beyond the cut); the
 nominal rms values are those of the SPEAR3 coupling studies (230 µrad, 76 µm). One global
-``scale`` multiplies every error; :class:`~pigp_torch.simulation.RingCoupling` calibrates it per
-seed so that the skews-off emittance ratio hits its target.
+``scale`` multiplies every error; :class:`~pigp_torch.machines.ring.ring.RingCoupling`
+calibrates it per seed so that the skews-off emittance ratio hits its target.
 
 A magnet that carries a thin skew winding is split in two halves around it; the two halves are one
 magnet (one roll, one offset): :func:`magnets` groups them.

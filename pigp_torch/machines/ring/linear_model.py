@@ -29,7 +29,7 @@ Observables:
   segment-start beam matrices with a precomputed ``36 x 2n_s`` matrix (no per-point propagation).
 
 Speed (why the code looks the way it does; the benchmark that times each choice is
-:mod:`~pigp_torch.simulation.throughput`):
+:mod:`~pigp_torch.machines.ring.throughput`):
 
 * every product with a *fixed* matrix is one large GEMM: the congruence :math:`S R S^T` is
   ``vec(R) @ (S ⊗ S)^T`` (36×36; faster than two 6×6 products plus a transpose copy);
@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from pigp_torch.simulation.lyapunov import eigen_emittances, lyapunov_doubling
+from pigp_torch.machines.ring.lyapunov import eigen_emittances, lyapunov_doubling
 
 #: doublings until M^(2^k) has decayed by e^-32 at the knobs-off damping (|M^2^k| ~ 1e-14)
 DAMPING_EXPONENT = 32.0

@@ -51,6 +51,46 @@ def _max_rel_diff(a, b, names) -> dict:
     return out
 
 
+def _time_fast(sim, Xd, workers: int, repeats: int) -> dict:
+    """Best-of-``repeats`` samples/s of the fast model on ``Xd``'s device (all outputs, and the
+    loss rate alone; on the CPU also per CPU-second), after one warm-up evaluation."""
+    batch = len(Xd)
+
+    def run(emittances):
+        with torch.no_grad():
+            sim._equilibrium(Xd, emittances=emittances, workers=workers)
+        if Xd.device.type == "cuda":
+            torch.cuda.synchronize(Xd.device)
+
+    run(True)  # warm-up (allocations, kernels)
+    w_full, c_full = _best_time(lambda: run(True), repeats)
+    w_loss, c_loss = _best_time(lambda: run(False), repeats)
+    res = {"samples_per_s": batch / w_full, "samples_per_s_loss_rate_only": batch / w_loss}
+    if Xd.device.type == "cpu":
+        res["samples_per_cpu_s"] = batch / c_full
+        res["samples_per_cpu_s_loss_rate_only"] = batch / c_loss
+    return res
+
+
+def _gpu_record(sim, X, devices, fast: dict, gpu_ok: bool, gpu_reason) -> dict:
+    """The ``gpu`` entry of :func:`measure_throughput`: availability, the GPU's samples/s and,
+    when one was timed, the largest relative difference of its outputs to the CPU's."""
+    gpu = next((d for d in devices if d.startswith("cuda")), None)
+    record = {
+        "available": gpu_ok,
+        "reason": gpu_reason,
+        "device": torch.cuda.get_device_name(gpu) if gpu else None,
+        "samples_per_s": fast[gpu]["samples_per_s"] if gpu else None,
+        "samples_per_s_loss_rate_only": fast[gpu]["samples_per_s_loss_rate_only"] if gpu else None,
+    }
+    if gpu:
+        n = min(len(X), 4096)
+        record["max_rel_diff_vs_cpu"] = _max_rel_diff(
+            sim.evaluate(X[:n].to(gpu)), sim.evaluate(X[:n]), ("eps_y", "eps_x", "loss_rate")
+        )
+    return record
+
+
 def measure_throughput(
     sim,
     *,
@@ -65,7 +105,7 @@ def measure_throughput(
     """Samples per second of ``sim``'s fast model (per device) and of its pyAT reference path.
 
     Args:
-        sim: a :class:`~pigp_torch.simulation.Spear3Coupling`.
+        sim: a :class:`~pigp_torch.machines.ring.spear3.Spear3Coupling`.
         batch: rows per timed evaluation (random settings in the knob box).
         n_reference: settings evaluated by the pyAT reference (for its speed and the agreement).
         repeats: timed repetitions; the best is reported.
@@ -103,39 +143,9 @@ def measure_throughput(
         "fast": {},
     }
     for device in devices:
-        Xd = X.to(device)
-
-        def run(emittances, Xd=Xd):
-            with torch.no_grad():
-                sim._equilibrium(Xd, emittances=emittances, workers=workers)
-            if Xd.device.type == "cuda":
-                torch.cuda.synchronize(Xd.device)
-
         say(f"timing the fast model on {device} ({batch} rows, best of {repeats})")
-        run(True)  # warm-up (allocations, kernels)
-        w_full, c_full = _best_time(lambda run=run: run(True), repeats)
-        w_loss, c_loss = _best_time(lambda run=run: run(False), repeats)
-        res = {"samples_per_s": batch / w_full, "samples_per_s_loss_rate_only": batch / w_loss}
-        if device == "cpu":
-            res["samples_per_cpu_s"] = batch / c_full
-            res["samples_per_cpu_s_loss_rate_only"] = batch / c_loss
-        out["fast"][device] = res
-
-    gpu = next((d for d in devices if d.startswith("cuda")), None)
-    out["gpu"] = {
-        "available": gpu_ok,
-        "reason": gpu_reason,
-        "device": torch.cuda.get_device_name(gpu) if gpu else None,
-        "samples_per_s": out["fast"][gpu]["samples_per_s"] if gpu else None,
-        "samples_per_s_loss_rate_only": (
-            out["fast"][gpu]["samples_per_s_loss_rate_only"] if gpu else None
-        ),
-    }
-    if gpu:
-        n = min(batch, 4096)
-        out["gpu"]["max_rel_diff_vs_cpu"] = _max_rel_diff(
-            sim.evaluate(X[:n].to(gpu)), sim.evaluate(X[:n]), ("eps_y", "eps_x", "loss_rate")
-        )
+        out["fast"][device] = _time_fast(sim, X.to(device), workers, repeats)
+    out["gpu"] = _gpu_record(sim, X, devices, out["fast"], gpu_ok, gpu_reason)
 
     say(f"pyAT reference on {n_reference} settings")
     Xr = X[:n_reference]

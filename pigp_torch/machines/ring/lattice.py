@@ -11,20 +11,20 @@ from pathlib import Path
 import at
 import numpy as np
 
-from pigp_torch.simulation import deck as _deck
+from pigp_torch.machines.ring import deck as _deck
 
 
 def load_ring(source, *, energy: float | None = None) -> at.Lattice:
     """A radiating pyAT ring from an element table or any lattice file pyAT loads.
 
     Args:
-        source: an ``at.Lattice``; a key of :data:`~pigp_torch.simulation.deck.DECKS`; a JSON
+        source: an ``at.Lattice``; a key of :data:`~pigp_torch.machines.ring.deck.DECKS`; a JSON
             element table (our format); or any file ``at.load_lattice`` reads (.mat, .m, .lte,
             ...).
         energy: beam energy (eV) for element tables (default 3 GeV) and for files that carry none.
 
     Returns:
-        A fresh 6-D ring (:func:`~pigp_torch.simulation.deck.make_radiating` applied when the
+        A fresh 6-D ring (:func:`~pigp_torch.machines.ring.deck.make_radiating` applied when the
         source is not 6-D).
 
     Raises:

@@ -6,9 +6,9 @@ machine: the optics decide which resonance driving terms the errors excite and h
 cancel them.
 
 :func:`ensemble_optima` computes the optima and the peak's shape at each, for any
-:class:`~pigp_torch.simulation.ring.RingCoupling` (its lattice, knobs and calibration with other
-error seeds); :func:`center_covariance` the optima's second moment about the nominal setting
-(zero knobs: the error model is symmetric, so the mean is zero up to sampling noise) and
+:class:`~pigp_torch.machines.ring.ring.RingCoupling` (its lattice, knobs and calibration
+with other error seeds); :func:`center_covariance` the optima's second moment about the nominal
+setting (zero knobs: the error model is symmetric, so the mean is zero up to sampling noise) and
 :func:`mean_shape` the mean shape. They are the ``center_cov`` and ``peak_shape`` of a
 :class:`~pigp_torch.prior.PhysicsPrior`.
 """
@@ -24,8 +24,10 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils.multistart import find_optimum
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spear3 import Spear3Coupling
+from pigp_torch.machines.ring.ring import RingCoupling
+from pigp_torch.machines.ring.spear3 import Spear3Coupling
+from pigp_torch.prior.peak_shape import excess_derivatives, mean_shape
+from pigp_torch.prior.peak_shape import peak_shape_at as generic_peak_shape_at
 
 #: box growth factors of the optimum search (times the knob box), up to ``reach``
 GROWTH = (1.0, 2.0, 4.0, 8.0)
@@ -76,26 +78,16 @@ def peak_shape_at(sim: RingCoupling, x: torch.Tensor) -> torch.Tensor:
 
     At a peak of the loss rate :math:`f` of ``sim``, :math:`g` is a quadratic bowl
     :math:`c + (\mathbf x - \boldsymbol\mu)^\top B (\mathbf x - \boldsymbol\mu)` to second order;
-    this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units).
+    this is the :math:`B` of :class:`~pigp_torch.models.InverseSqrtPeakModel` (knob units):
+    :func:`pigp_torch.prior.peak_shape.peak_shape_at` of the loss rate and its background, the
+    code every machine model's shape goes through.
     """
-    H, _ = _g_derivatives(sim, x)
-    return H / 2
+    return generic_peak_shape_at(sim.loss_rate, float(sim.loss_background), x)
 
 
 def _g_derivatives(sim: RingCoupling, x: torch.Tensor):
     """Hessian and gradient of g = (f - f_inf)^-2 at ``x`` (autograd)."""
-    # Not prior.log_excess_hessian: that is log(f - f_inf), whose Hessian gives B only at an exact
-    # stationary point (-H c there); g's Hessian is B wherever g is quadratic, and simulation/
-    # does not import from prior/ (same layer).
-    f_inf = float(sim.loss_background)
-
-    def g(z: torch.Tensor) -> torch.Tensor:
-        return (sim.loss_rate(z.unsqueeze(0)).reshape(()) - f_inf) ** -2
-
-    x = torch.as_tensor(x, dtype=DTYPE).detach()
-    H = torch.autograd.functional.hessian(g, x)
-    G = torch.autograd.functional.jacobian(g, x)
-    return (H + H.T) / 2, G
+    return excess_derivatives(sim.loss_rate, float(sim.loss_background), x)
 
 
 def unconstrained_optimum(sim: RingCoupling, reach: float = 4.0):
@@ -164,8 +156,9 @@ def ensemble_optima(
 
     Args:
         seeds: error seeds of the model rings.
-        model: the ring (any :class:`~pigp_torch.simulation.ring.RingCoupling`); ring ``s`` is
-            ``model.with_seed(s)``. Default: ``Spear3Coupling(knobs=knobs, optics=optics)``.
+        model: the ring (any :class:`~pigp_torch.machines.ring.ring.RingCoupling`); ring
+            ``s`` is ``model.with_seed(s)``. Default:
+            ``Spear3Coupling(knobs=knobs, optics=optics)``.
         knobs, optics: of the default SPEAR3 model.
         reach: largest search box, in units of the knob box (>= 1).
         progress: print one line per ring.
@@ -263,19 +256,6 @@ def gather_optima(results) -> EnsembleOptima:
     )
 
 
-def mean_shape(shapes: torch.Tensor) -> torch.Tensor:
-    r""":math:`\bar B = \frac1n \sum_i B_i`: the mean of ``n x d x d`` peak shapes (symmetrized).
-
-    The shape is a property of the optics that the errors perturb; the mean over rings is a
-    better estimate for an unseen machine than any one ring's.
-    """
-    shapes = torch.as_tensor(shapes, dtype=DTYPE)
-    if shapes.ndim != 3 or shapes.shape[0] < 1 or shapes.shape[1] != shapes.shape[2]:
-        raise ValueError(f"shapes must be n x d x d with n >= 1, got {tuple(shapes.shape)}")
-    B = shapes.mean(0)
-    return (B + B.T) / 2
-
-
 def center_covariance(X: torch.Tensor) -> torch.Tensor:
     r""":math:`\frac1n \sum_i \mathbf x_i \mathbf x_i^\top`: second moment of ``n x d`` optima
     about zero knobs (the mean of a symmetric error model).
@@ -324,7 +304,7 @@ def ensemble_plan(size: int, data_meta: dict, knob_names, machine_seed=None):
     Raises:
         ValueError: as :func:`with_center_ensemble`.
     """
-    from pigp_torch.simulation.spec import RingSpec, as_ring_spec
+    from pigp_torch.machines.ring.spec import RingSpec, as_ring_spec
 
     check_ensemble_size(size, len(knob_names))
     if data_meta.get("ring"):
@@ -353,7 +333,7 @@ def with_center_ensemble(
             the two fields and ``provenance["center_ensemble_seeds"]``).
         size: number of ensemble rings.
         data_meta: the surrogate's data metadata: ``ring`` (a
-            :class:`~pigp_torch.simulation.spec.RingSpec` record; without one, the SPEAR3 ring
+            :class:`~pigp_torch.machines.ring.spec.RingSpec` record; without one, the SPEAR3 ring
             with the prior's knobs) and ``error_seed`` (the model ring's).
         machine_seed: error seed of the machine under test, if known.
         progress: print a line and show a progress bar.

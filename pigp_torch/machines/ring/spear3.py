@@ -1,7 +1,7 @@
 r"""``Spear3Coupling``: the real SPEAR3 ring and its skew windings, in amps.
 
 SPEAR3 (3 GeV, 234.144 m, 18 girders: 14 standard double-bend cells and 4 matching cells in
-girders 1, 9, 10 and 18) is built from its lattice deck (:mod:`~pigp_torch.simulation.deck`; the
+girders 1, 9, 10 and 18) is built from its lattice deck (:mod:`~pigp_torch.machines.ring.deck`; the
 user-mode deck sp3v82 by default, tunes 14.13 / 6.22). Each of its 72 sextupoles carries a
 skew-quadrupole winding; winding ``NNG-QSSk`` sits on the (4(NN−1)+k)-th sextupole in ring order.
 Knobs are set in **amps**; a winding's integrated skew strength is
@@ -16,14 +16,14 @@ powered windings without 03G-QSS3), ``"powered14"``, ``"all72"``, or a list of w
 
 Loss-rate map: :data:`LOSS_RATE_MAP` (f∞, g) is one pair of constants for the ring, chosen so that
 error seed 1 of the user-mode ring with the 13 default knobs has 0.5 mA/min with the skews off and
-1.7 mA/min at its optimum (:func:`~pigp_torch.simulation.calibration.calibrate_loss_rate_map`
+1.7 mA/min at its optimum (:func:`~pigp_torch.machines.ring.calibration.calibrate_loss_rate_map`
 recomputes it; a test checks it still holds).
 """
 
 from __future__ import annotations
 
-from pigp_torch.simulation import deck as _deck
-from pigp_torch.simulation.ring import TARGET_RATIO, RingCoupling
+from pigp_torch.machines.ring import deck as _deck
+from pigp_torch.machines.ring.ring import TARGET_RATIO, RingCoupling
 
 #: K1s per amp of a SPEAR3 skew winding, 1/(m² A) (multiply by the sextupole length for K1s·L)
 SKEW_K_PER_A_M2 = 0.00245246
@@ -87,7 +87,7 @@ class Spear3Coupling(RingCoupling):
         loss_rate_map: ``(f_inf, g)``; default :data:`LOSS_RATE_MAP`.
 
     Knob values are currents in amps, float64, ``(N, K)`` or ``(K,)``; ``bounds`` is ±30 A.
-    Everything else is :class:`~pigp_torch.simulation.ring.RingCoupling`.
+    Everything else is :class:`~pigp_torch.machines.ring.ring.RingCoupling`.
     """
 
     def __init__(

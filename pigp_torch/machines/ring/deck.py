@@ -14,7 +14,8 @@ kick is zero at the working point), and every sextupole with a winding is split 
 a thin skew quadrupole (``at.ThinMultipole`` named after the winding, ``PolynomA[1]`` = K1s·L in
 1/m, zero) between them.
 
-Shipped decks (:data:`DECKS`, files in ``pigp_torch/data/`` with their provenance headers):
+Shipped decks (:data:`DECKS`, files in ``pigp_torch/machines/ring/data/`` with their provenance
+headers):
 
 =================  =======================  ===============  ===========
 ``optics``         deck                     tunes            εx (nm)
@@ -40,7 +41,7 @@ import numpy as np
 #: SPEAR3 beam energy (eV); the element tables carry no energy.
 SPEAR3_ENERGY = 3.0e9
 
-#: ``optics`` name -> shipped element-table file (in ``pigp_torch/data``).
+#: ``optics`` name -> shipped element-table file (in ``pigp_torch/machines/ring/data``).
 DECKS = {
     "user": "spear3_sp3v82_elements.json",
     "design": "spear3_sp3v81f_elements.json",
@@ -56,7 +57,7 @@ def deck_path(optics: str) -> Path:
     """
     if optics not in DECKS:
         raise ValueError(f"unknown optics {optics!r}; choose one of {sorted(DECKS)}")
-    return Path(str(resources.files("pigp_torch") / "data" / DECKS[optics]))
+    return Path(str(resources.files("pigp_torch.machines.ring") / "data" / DECKS[optics]))
 
 
 @functools.lru_cache(maxsize=8)

@@ -1,0 +1,300 @@
+r"""A fitted model that follows a machine which changes while it is tuned.
+
+:class:`TrackingModelOptimizer` is :class:`~pigp_torch.optimizers.model_check.
+CheckedModelOptimizer` (the unknowns :math:`\theta` of a differentiable model :math:`M(x, \theta)`
+fitted to every reading's observables, the ask the model's optimum in a trust region, a prior
+check of the fit) whose prior check, when it fails, does not hand the run over to a model-free
+search: from then on the model **follows the machine**.
+
+1. **Tracked unknowns and a residual on the observables.** The state is the unknowns and an
+   offset :math:`b \in \mathbb R^m` of the observables (what the model does not explain:
+   physics it lacks, acting fields that differ from the set ones),
+
+   .. math:: o_t = M(x_t, \theta_t) + b_t + v_t, \qquad v_t \sim N(0, s^2 I),
+
+   fitted by :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter`: an information filter
+   that forgets old readings at a rate learned from the one-step-ahead predictive likelihood
+   (time: the readings told). It starts from the batch fit and its information; the offset
+   starts at 0 with the prior half width ``offset_half_width`` (observable units; default 50
+   ``obs_sd``).
+2. **The best setting from the current estimate.** Each ask is the optimum of the goal of
+   :math:`M(x, \hat\theta_t) + \hat b_t` in the trust region around the current setting (the last
+   reading's: a stale best reading does not hold it), found as :class:`~pigp_torch.optimizers.
+   model_fit.FittedModelOptimizer`'s ask. The region doubles after a reading the filter
+   predicted (every standardized innovation within ``agree_sd``) or one better than the reading
+   before, and halves otherwise, within ``track_trust_min``, ``track_trust_max`` (fractions of
+   each knob's range: the travel per reading is a safety rule). :meth:`recommend` is that
+   optimum now.
+3. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
+   :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
+   ``cusum_h``): the filter then forgets what it learned from the readings before
+   (``step_forget``) and re-acquires from the next ones; a ``"step"`` notice says so.
+4. **The check returns to the model.** The prior check keeps running on the tracked model; the
+   model is never abandoned, and the ``"model-restored"`` notice says when it explains the last
+   ``check_window`` readings again.
+
+While the check passes the optimizer is exactly the checked model (same fits, same asks): a
+machine the model explains is tuned as before. ``fallback="nm"`` or ``"bo"`` gives the checked
+model's permanent hand-over instead.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pigp_torch._utils import DTYPE
+from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
+from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
+from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
+
+__all__ = ["TrackingModelOptimizer"]
+
+
+class TrackingModelOptimizer(CheckedModelOptimizer):
+    r"""A checked fitted model that follows the machine after a failed check (module
+    docstring).
+
+    Args:
+        bounds: ``2 x d`` knob bounds.
+        fallback: ``"track"`` (default: the module docstring) or a fallback of
+            :class:`CheckedModelOptimizer` (``"nm"``, ``"bo"``, a callable: its hand-over).
+        forgets: the filter's forgetting factors (default
+            :data:`~pigp_torch.optimizers.track_filter.FORGET_GRID`).
+        offset_half_width: prior half width of the observables' offset (observable units;
+            default 50 ``obs_sd``; 0: no offset, the unknowns alone are tracked).
+        track_trust, track_trust_min, track_trust_max: the trust region while tracking (fraction
+            of each knob's range; default 0.01, 0.002, 0.05).
+        cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
+            of a few noise sd does not alarm, a jump of 10 does at once) and the weight left to
+            the readings before a step (default 0.01).
+        options: :class:`CheckedModelOptimizer` arguments (``check_window``, ``check_alpha``, ...,
+            and :class:`FittedModelOptimizer`'s).
+
+    Attributes:
+        tracking: whether the model follows the machine (after the first failed check).
+        filter: the :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter` (``None``
+            before); steps: readings told at each step alarm; n_tracked: readings told while
+            tracking; n_restored: "model-restored" notices.
+    """
+
+    name = "model-fit-tracking"
+
+    def __init__(
+        self,
+        bounds,
+        *,
+        fallback="track",
+        forgets=FORGET_GRID,
+        offset_half_width: float | None = None,
+        track_trust: float = 0.01,
+        track_trust_min: float = 0.002,
+        track_trust_max: float = 0.05,
+        cusum_k: float = 10.0,
+        cusum_h: float = 100.0,
+        step_forget: float = 0.01,
+        **options,
+    ) -> None:
+        self.track = isinstance(fallback, str) and fallback == "track"
+        super().__init__(bounds, fallback="nm" if self.track else fallback, **options)
+        if not (0 < track_trust_min <= track_trust <= track_trust_max):
+            raise ValueError("need 0 < track_trust_min <= track_trust <= track_trust_max")
+        if not (cusum_h > 0 and 0 < step_forget <= 1):
+            raise ValueError("need cusum_h > 0 and 0 < step_forget <= 1")
+        self.forgets = tuple(forgets)
+        half = 50 * self.obs_sd if offset_half_width is None else float(offset_half_width)
+        if half < 0:
+            raise ValueError(f"offset_half_width must be >= 0, got {offset_half_width}")
+        self.offset_half_width = half
+        self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
+        self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
+        self.tracking = False
+        self.filter: UnknownsFilter | None = None
+        self.steps: list[int] = []
+        self.n_tracked = 0
+        self.n_restored = 0
+        self._cusum = 0.0
+        self._search_offset: torch.Tensor | None = None
+
+    @property
+    def offset(self) -> torch.Tensor | None:
+        """The tracked offset of the observables (``m``, observable units); ``None`` before
+        tracking or without an offset."""
+        if self.filter is None or self.offset_half_width == 0:
+            return None
+        P = self.center.numel()
+        return self.filter.u[P:] * self.offset_half_width
+
+    # -- the fit and the check ---------------------------------------------------------------
+
+    def _fit(self) -> tuple[torch.Tensor, float]:
+        """The checked model's fit; while tracking, the filter takes the new reading (cost
+        NaN)."""
+        if not self.tracking:
+            return super()._fit()
+        self.filter.update(self.X[-1], self.O[-1])
+        return self.filter.u[: self.center.numel()].clone(), float("nan")
+
+    def _fall_back(self, chi2: float, dof: int, p: float, k: int) -> None:
+        if not self.track:
+            return super()._fall_back(chi2, dof, p, k)
+        P, m = self.center.numel(), self.O[-1].numel()
+        base, n_off = self.model, (m if self.offset_half_width > 0 else 0)
+
+        def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+            out = base(X, theta[..., :P])
+            return out + theta[..., P:] if n_off else out
+
+        H = information(self.model, torch.stack(self.X), self.center, self.half_width, self.u,
+                        obs_sd=self.obs_sd, prior_sd=float(self.settings.prior_sd))  # fmt: skip
+        H = torch.block_diag(H, torch.eye(n_off, dtype=DTYPE) / float(self.settings.prior_sd) ** 2)
+        zeros = torch.zeros(n_off, dtype=DTYPE)
+        self.filter = UnknownsFilter(
+            model,
+            torch.cat([self.center, zeros]),
+            torch.cat([self.half_width, torch.full_like(zeros, self.offset_half_width)]),
+            torch.cat([self.u, zeros]),
+            H=H,
+            obs_sd=self.obs_sd,
+            prior_sd=float(self.settings.prior_sd),
+            forgets=self.forgets,
+        )
+        self.tracking, self._failed = True, 0
+        self.trust = self.track_trust[0]
+        self.notify(
+            "prior-check",
+            f"the fitted model does not explain the readings (chi2 {chi2:.1f} for {dof} numbers "
+            f"over the last {k} readings, p = {p:.1e} < {self.check_alpha:g}, "
+            f"{self.check_patience} checks in a row): from now on its unknowns and an offset of "
+            "the observables are tracked, forgetting old readings",
+            chi2=chi2,
+            dof=dof,
+            p=p,
+        )
+
+    def tell(self, x, y: float, observables=None) -> None:
+        """The checked model's tell (fit and check); while tracking: the filter's update, the
+        trust region, step detection and the check of the tracked model."""
+        if not self.tracking:
+            super().tell(x, y, observables=observables)
+            return
+        y_prev, trust = self.Y[-1], self.trust
+        FittedModelOptimizer.tell(self, x, y, observables=observables)  # the filter's update
+        self.n_tracked += 1
+        z = self.filter.last_z
+        better = y > y_prev if self.maximize else y < y_prev
+        _, lo, hi = self.track_trust
+        grow = better or bool((z.abs() <= AGREE_SD).all())
+        self.trust = min(2 * trust, hi) if grow else max(trust / 2, lo)
+        self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
+        if self._cusum > self.cusum_h:
+            self._cusum = 0.0
+            self.steps.append(self.n_told)
+            for g in range(len(self.filter.forgets)):
+                self.filter.L[g] = self.step_forget * self.filter.L[g]
+                self.filter.eta[g] = self.step_forget * self.filter.eta[g]
+            self.notify(
+                "step",
+                f"a step change: the readings left the tracked model (CUSUM of the standardized "
+                f"innovations over {self.cusum_h:g}); the fit forgets the readings before and "
+                "re-acquires",
+            )
+        self._check_tracking()
+
+    def _check_tracking(self) -> None:
+        """The prior check of the tracked model (with its offset) on the last
+        ``check_window`` readings; a notice when it passes again after failing."""
+        k = min(self.check_window, self.n_told)
+        X, O = torch.stack(self.X[-k:]), torch.stack(self.O[-k:])
+        with torch.no_grad():
+            chi2, dof, p = chi2_check(self.filter.model, X, O, self._filter_theta(), self.obs_sd)
+        self.checks.append({"at_told": self.n_told, "chi2": chi2, "dof": dof, "p": p})
+        failed_before = self._failed >= self.check_patience
+        self._failed = self._failed + 1 if p < self.check_alpha else 0
+        if failed_before and self._failed == 0:
+            self.n_restored += 1
+            self.notify(
+                "model-restored",
+                f"the tracked model explains the last {k} readings again (chi2 {chi2:.1f} for "
+                f"{dof} numbers, p = {p:.1e})",
+                chi2=chi2,
+                dof=dof,
+                p=p,
+            )
+
+    def _filter_theta(self) -> torch.Tensor:
+        return self.filter.center + self.filter.half_width * self.filter.u
+
+    # -- the ask -------------------------------------------------------------------------------
+
+    def best(self) -> tuple[torch.Tensor, float]:
+        """The checked model's best setting; while tracking, the best reading (a best setting
+        of the past is not the best now: :meth:`recommend` is)."""
+        if self.tracking:
+            return AskTellOptimizer.best(self)
+        return super().best()
+
+    def _search_box(self) -> torch.Tensor:
+        """While tracking, the trust region around the current setting (the last reading's)."""
+        if not self.tracking:
+            return super()._search_box()
+        lo, hi = self.bounds
+        half = self.trust * (hi - lo)
+        x = self.X[-1]
+        return torch.stack([torch.maximum(lo, x - half), torch.minimum(hi, x + half)])
+
+    def _fit_change(self, theta: torch.Tensor) -> float:
+        """The change of the prediction at the last ask since the last search (noise sd), the
+        offset's change included."""
+        change = super()._fit_change(theta)
+        now, then = self.offset, self._search_offset
+        if (now is None) != (then is None):
+            return float("inf")
+        if now is not None:
+            change += float((now - then).abs().max()) / self.obs_sd
+        return change
+
+    def ask(self) -> torch.Tensor:
+        """The checked model's ask; while tracking, the optimum of the model plus the tracked
+        offset in the trust region around the current setting."""
+        offset = self.offset
+        if offset is None:
+            x = super().ask()
+            self._search_offset = None
+            return x
+        base = self.model
+
+        def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+            return base(X, theta) + offset
+
+        self.model = model
+        try:
+            x = FittedModelOptimizer.ask(self)
+        finally:
+            self.model = base
+        self._search_offset = offset
+        return x
+
+    def recommend(self) -> torch.Tensor:
+        """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
+        optimum of the tracked model, plus the offset while it is on, around the current
+        setting); before, :meth:`best`'s setting (the one-shot behaviour)."""
+        return self.ask() if self.tracking else self.best()[0]
+
+    def tracked(self) -> dict[str, tuple[float, str]]:
+        """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while
+        tracking) and the offset of each observable (0 while the model alone is trusted)."""
+        mm = self.machine_model
+        P = self.center.numel()
+        names = list(mm.unknown_names) if mm is not None else [f"u{i}" for i in range(P)]
+        units = list(mm.unknown_units) if mm is not None else [""] * P
+        out = {n: (float(v), u) for n, v, u in zip(names, self.theta, units, strict=True)}
+        if not self.O:
+            return out
+        m = self.O[-1].numel()
+        obs = list(mm.observable_names) if mm is not None else [f"o{j}" for j in range(m)]
+        obs_units = list(mm.observable_units) if mm is not None else [""] * m
+        off = self.offset if self.offset is not None else torch.zeros(m, dtype=DTYPE)
+        for n, v, u in zip(obs, off, obs_units, strict=True):
+            out[f"{n}_offset"] = (float(v), u)
+        return out
