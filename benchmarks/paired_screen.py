@@ -7,7 +7,14 @@ median gain after 20 evaluations, the mean paired differences variant − baseli
 and of the gain after 20 and 40 with their standard errors (:math:`s/\sqrt n` of the per-machine
 differences), and the median compute per ask (ms) with its ratio to the baseline's.
 
+A file may also hold per-run scores (``benchmarks/run_scores.py``, no ``step`` column, e.g.
+``docs/data/scores_early_asks_2026-12-06.csv``), so that kept runs join new ones; then every
+file is scored per run, ``--family`` picks the family's rows, and the compute per ask is the
+median over runs of each run's median (ms).
+
     python benchmarks/paired_screen.py runs/acq_1*.csv --baseline default
+    python benchmarks/paired_screen.py docs/data/scores_early_asks_2026-12-06.csv \
+        runs/wide_1??.csv --family wide
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import sys
 
 import numpy as np
 import pandas as pd
+from run_scores import scores_of
 
 from pigp_torch.benchmark.scoring import run_scores
 
@@ -25,8 +33,15 @@ from pigp_torch.benchmark.scoring import run_scores
 def paired_table(df: pd.DataFrame, baseline: str = "default") -> pd.DataFrame:
     """One row per method of ``df`` (runs of :func:`~pigp_torch.benchmark.run_benchmark`),
     scored on the machine seeds that the baseline shares with it (module docstring)."""
-    scores = run_scores(df).set_index(["method", "machine_seed"])
     ask = df[df["step"] > 0].groupby("method")["ask_time_s"].median() * 1e3
+    return paired_scores(run_scores(df), ask, baseline)
+
+
+def paired_scores(scores: pd.DataFrame, ask: pd.Series, baseline: str = "default") -> pd.DataFrame:
+    """:func:`paired_table` from per-run ``scores`` (columns ``method``, ``machine_seed``,
+    ``reached_95``, ``steps_to_95``, ``gain_20``, ``gain_40``; one run per method and machine)
+    and the median compute per ask ``ask`` (ms, indexed by method)."""
+    scores = scores.set_index(["method", "machine_seed"])
     if baseline not in scores.index.get_level_values(0):
         raise ValueError(f"baseline {baseline!r} is not among the runs' methods")
     base = scores.loc[baseline]
@@ -53,9 +68,19 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("csv", nargs="+", help="screen CSV files")
     p.add_argument("--baseline", default="default", help="method name of the baseline")
+    p.add_argument("--family", default="project", help="family of per-run score rows")
     args = p.parse_args(argv)
-    df = pd.concat([pd.read_csv(f) for f in args.csv], ignore_index=True)
-    table = paired_table(df, args.baseline)
+    frames = [pd.read_csv(f) for f in args.csv]
+    if all("step" in f.columns for f in frames):
+        df = pd.concat(frames, ignore_index=True)
+        table = paired_table(df, args.baseline)
+    else:  # kept per-run scores among the files: score every file per run
+        df = pd.concat([f if "step" not in f.columns else scores_of(f) for f in frames])
+        df = df[df["family"] == args.family]
+        if df.duplicated(["method", "machine_seed"]).any():
+            raise SystemExit("a method ran twice on one machine among the files")
+        ask = df.groupby("method")["ask_ms_median"].median()
+        table = paired_scores(df, ask, args.baseline)
     with pd.option_context("display.width", 200):
         print(table.round(3).to_string())
     print(f"(steps in evaluations, gains as fractions of f* - f0, ask in ms; machines: "
