@@ -16,7 +16,9 @@ rate :math:`f` (gain fractions :math:`g(x) = (f(x) - f_0)/(f^* - f_0)`):
   limit held the ask back;
 * ``info``: asks before ``steps`` that maximized a centre information, not the UCB;
 * ``stall``: the most consecutive evaluations before ``steps`` in which the best true gain
-  rose by less than 0.01.
+  rose by less than 0.01;
+* ``centre_gain_N`` (N = 10, 20, 30, 40): :math:`g(\hat x_N)`, the gain fraction at the
+  fitted centre after N readings (a fraction; empty past the budget).
 
 Prints one row per run, then per variant the medians and the means with standard errors over
 the machines. Units: evaluations (counts).
@@ -107,13 +109,16 @@ def run_losses(spec, seed: int, prior, budget: int, family: str) -> dict:
         best = max(best, g)
         stall = max(stall, run)
     after = steps - centre_at - 1 if centre_at < steps else math.nan
+    at = {f"centre_gain_{n}": float(g_centre[n - 1]) if n <= len(g_centre) else math.nan
+          for n in (10, 20, 30, 40)}  # fmt: skip
     return {"method": spec.name, "machine_seed": seed, "steps": steps, "centre_at": centre_at,
-            "after": after, "clipped": clipped, "info": info, "stall": stall}  # fmt: skip
+            "after": after, "clipped": clipped, "info": info, "stall": stall, **at}  # fmt: skip
 
 
 def summary(df: pd.DataFrame) -> pd.DataFrame:
     """Per method: median and mean ± standard error over the machines of every count."""
     cols = ["steps", "centre_at", "after", "clipped", "info", "stall"]
+    cols += [c for c in df.columns if c.startswith("centre_gain_")]
     out = {}
     for method, g in df.groupby("method", sort=False):
         row = {"machines": len(g)}
@@ -121,7 +126,8 @@ def summary(df: pd.DataFrame) -> pd.DataFrame:
             v = g[c].dropna().to_numpy(dtype=float)
             se = v.std(ddof=1) / math.sqrt(len(v)) if len(v) > 1 else math.nan
             row[f"{c}_median"] = float(np.median(v)) if len(v) else math.nan
-            row[f"{c}_mean"] = f"{v.mean():.1f} ± {se:.1f}" if len(v) else ""
+            digits = 3 if c.startswith("centre_gain") else 1
+            row[f"{c}_mean"] = f"{v.mean():.{digits}f} ± {se:.{digits}f}" if len(v) else ""
         out[method] = row
     return pd.DataFrame(out).T
 
