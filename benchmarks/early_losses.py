@@ -25,6 +25,7 @@ the machines. Units: evaluations (counts).
 
     python benchmarks/early_losses.py --prior docs/data/prior_spear3_seed0_surrogate.json \\
         --seeds 101-112 --budget 50 -o runs/early_losses.csv default 'exp:{"schedule": "uue"}'
+    python benchmarks/early_losses.py --from runs/loss_1*.csv    # the summary of kept runs
 """
 
 from __future__ import annotations
@@ -134,13 +135,19 @@ def summary(df: pd.DataFrame) -> pd.DataFrame:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("variants", nargs="+", help="as benchmarks/screen_physics.py")
+    p.add_argument("variants", nargs="*", help="as benchmarks/screen_physics.py")
     p.add_argument("--seeds", default="101-112", help="tuning machine seeds a-b (>= 101)")
     p.add_argument("--budget", type=int, default=50)
-    p.add_argument("--prior", required=True, help="prior JSON file")
+    p.add_argument("--prior", help="prior JSON file (needed to run)")
+    p.add_argument("--from", dest="kept", nargs="+", help="summarize these per-run CSVs")
     p.add_argument("--family", choices=FAMILIES, default="project")
     p.add_argument("-o", "--out", help="CSV of the per-run counts")
     args = p.parse_args(argv)
+    if args.kept:
+        print_summary(pd.concat([pd.read_csv(f) for f in args.kept], ignore_index=True))
+        return 0
+    if not (args.prior and args.variants):
+        raise SystemExit("give --prior and the variants to run (or --from CSV files)")
     a, b = (int(v) for v in args.seeds.split("-"))
     if a <= 24:
         raise SystemExit("tune on seeds outside the benchmark's 1-24")
@@ -154,10 +161,16 @@ def main(argv=None) -> int:
     df = pd.DataFrame(rows)
     if args.out:
         df.to_csv(args.out, index=False)
-    with pd.option_context("display.width", 200):
-        print(summary(df).to_string())
-    print("(counts of evaluations; medians and means ± SE over the machines)")
+    print_summary(df)
     return 0
+
+
+def print_summary(df: pd.DataFrame) -> None:
+    """Print :func:`summary` of the per-run rows ``df``."""
+    with pd.option_context("display.width", 250, "display.max_columns", 40):
+        print(summary(df).T.to_string())
+    print("(counts in evaluations, centre gains as fractions of f* - f0; medians and means ± SE "
+          f"over the machines {sorted(set(df['machine_seed']))})")  # fmt: skip
 
 
 if __name__ == "__main__":
