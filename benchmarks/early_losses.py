@@ -11,10 +11,10 @@ rate :math:`f` (gain fractions :math:`g(x) = (f(x) - f_0)/(f^* - f_0)`):
   :math:`g(\hat x_n) \ge 0.95` (:math:`\hat x_n` clipped to the knob bounds); budget + 1 when
   never. The ask right after it could read at 95 %, so ``steps - centre_at - 1`` evaluations
   (``after``) are spent between a good fitted centre and a reading that uses it;
-* ``clipped``: asks before ``steps`` with a knob on the search box's edge (within 1e-9 of
-  the half-range) while the fitted centre lay outside that box: the trust box or the travel
+* ``clipped``: asks up to the reading at 95 % with a knob on the search box's edge (within
+  1e-9 of the half-range) while the fitted centre lay outside that box: the trust box or the travel
   limit held the ask back;
-* ``info``: asks before ``steps`` that maximized a centre information, not the UCB;
+* ``info``: asks up to the reading at 95 % that maximized a centre information, not the UCB;
 * ``stall``: the most consecutive evaluations before ``steps`` in which the best true gain
   rose by less than 0.01;
 * ``centre_gain_N`` (N = 10, 20, 30, 40): :math:`g(\hat x_N)`, the gain fraction at the
@@ -79,41 +79,50 @@ def recording(spec, log: list[dict]):
 
 def run_losses(spec, seed: int, prior, budget: int, family: str) -> dict:
     """One instrumented run of ``spec`` on machine ``seed``: the counts of the module
-    docstring."""
+    docstring (:func:`count_losses`)."""
     log: list[dict] = []
     table = run_one(recording(spec, log), seed, prior, budget=budget, family=family)
     sim = benchmark_ring(seed, as_ring_spec(None), True, family)
-    f0, f_star = float(table["f0"].iloc[0]), machine_optimum(seed, 8, machine_maps=True,
-                                                               family=family)  # fmt: skip
-    gain = table.sort_values("step")["gain_fraction"].to_numpy()
-    hit = np.flatnonzero(gain >= GOOD)
-    steps = int(hit[0]) + 1 if hit.size else budget + 1
+    f0 = float(table["f0"].iloc[0])
+    f_star = machine_optimum(seed, 8, machine_maps=True, family=family)
     centres = torch.stack([r["centre"] for r in log])
     centres = torch.minimum(torch.maximum(centres, sim.bounds[0]), sim.bounds[1])
     with torch.no_grad():
         g_centre = ((sim.loss_rate(centres) - f0) / (f_star - f0)).numpy()
-    good = np.flatnonzero(g_centre >= GOOD)  # log[k]: the ask after k + 1 readings
-    centre_at = int(good[0]) + 1 if good.size else budget + 1
+    gain = table.sort_values("step")["gain_fraction"].to_numpy()
     half = (sim.bounds[1] - sim.bounds[0]) / 2
+    counts = count_losses(gain, g_centre, log, half, budget)
+    return {"method": spec.name, "machine_seed": seed, **counts}
+
+
+def count_losses(gain, g_centre, log: list[dict], half: torch.Tensor, budget: int) -> dict:
+    """The counts of the module docstring from one run: ``gain`` (``budget``) the true gain
+    fraction of each evaluation in order, ``g_centre`` (``budget - 1``) that of the fitted
+    centre at each ask (``g_centre[k]`` after ``k + 1`` readings), ``log`` the asks of
+    :func:`recording`, ``half`` (``d``) the knobs' half-ranges."""
+    hit = np.flatnonzero(np.asarray(gain) >= GOOD)
+    steps = int(hit[0]) + 1 if hit.size else budget + 1
+    good = np.flatnonzero(np.asarray(g_centre) >= GOOD)
+    centre_at = int(good[0]) + 1 if good.size else budget + 1
     clipped = info = 0
-    for r in log[: max(steps - 1, 0)]:
-        on_edge = ((r["x"] - r["lower"]).abs() < 1e-9 * half) | (
+    for r in log[: max(min(steps, budget) - 1, 0)]:  # the asks up to the reading at 95 %
+        edge = ((r["x"] - r["lower"]).abs() < 1e-9 * half) | (
             (r["upper"] - r["x"]).abs() < 1e-9 * half
         )
         outside = bool(((r["centre"] < r["lower"]) | (r["centre"] > r["upper"])).any())
-        clipped += int(bool(on_edge.any()) and outside)
+        clipped += int(bool(edge.any()) and outside)
         info += int(r["inform"])
     stall = run = 0
     best = gain[0]
-    for g in gain[1 : steps - 1 if hit.size else budget]:
+    for g in gain[1 : min(steps, budget)]:
         run = 0 if g >= best + STALL_RISE else run + 1
         best = max(best, g)
         stall = max(stall, run)
     after = steps - centre_at - 1 if centre_at < steps else math.nan
     at = {f"centre_gain_{n}": float(g_centre[n - 1]) if n <= len(g_centre) else math.nan
           for n in (10, 20, 30, 40)}  # fmt: skip
-    return {"method": spec.name, "machine_seed": seed, "steps": steps, "centre_at": centre_at,
-            "after": after, "clipped": clipped, "info": info, "stall": stall, **at}  # fmt: skip
+    return {"steps": steps, "centre_at": centre_at, "after": after, "clipped": clipped,
+            "info": info, "stall": stall, **at}  # fmt: skip
 
 
 def summary(df: pd.DataFrame) -> pd.DataFrame:
