@@ -10,7 +10,9 @@ differences), and the median compute per ask (ms) with its ratio to the baseline
 A file may also hold per-run scores (``benchmarks/run_scores.py``, no ``step`` column, e.g.
 ``docs/data/scores_early_asks_2026-12-06.csv``), so that kept runs join new ones; then every
 file is scored per run, ``--family`` picks the family's rows, and the compute per ask is the
-median over runs of each run's median (ms).
+median over the shared machines of each run's median (ms), its ratio the median of the
+per-machine ratios (the two runs of a machine ran in one process, under one load; runs of
+different sessions did not).
 
     python benchmarks/paired_screen.py runs/acq_1*.csv --baseline default
     python benchmarks/paired_screen.py docs/data/scores_early_asks_2026-12-06.csv \
@@ -37,10 +39,13 @@ def paired_table(df: pd.DataFrame, baseline: str = "default") -> pd.DataFrame:
     return paired_scores(run_scores(df), ask, baseline)
 
 
-def paired_scores(scores: pd.DataFrame, ask: pd.Series, baseline: str = "default") -> pd.DataFrame:
+def paired_scores(
+    scores: pd.DataFrame, ask: pd.Series | None = None, baseline: str = "default"
+) -> pd.DataFrame:
     """:func:`paired_table` from per-run ``scores`` (columns ``method``, ``machine_seed``,
     ``reached_95``, ``steps_to_95``, ``gain_20``, ``gain_40``; one run per method and machine)
-    and the median compute per ask ``ask`` (ms, indexed by method)."""
+    and the median compute per ask ``ask`` (ms, indexed by method); ``ask=None``: from the
+    scores' per-run ``ask_ms_median``, paired by machine (module docstring)."""
     scores = scores.set_index(["method", "machine_seed"])
     if baseline not in scores.index.get_level_values(0):
         raise ValueError(f"baseline {baseline!r} is not among the runs' methods")
@@ -58,8 +63,13 @@ def paired_scores(scores: pd.DataFrame, ask: pd.Series, baseline: str = "default
             row[f"d_{name}"] = float(diff.mean())
             sd = float(diff.std(ddof=1)) if len(diff) > 1 else math.nan
             row[f"se_{name}"] = sd / math.sqrt(len(diff)) if len(diff) > 1 else math.nan
-        row["ask_ms_median"] = float(ask[method])
-        row["ask_ratio"] = float(ask[method] / ask[baseline])
+        if ask is None:
+            own_ms, base_ms = own.loc[seeds, "ask_ms_median"], base.loc[seeds, "ask_ms_median"]
+            row["ask_ms_median"] = float(own_ms.median())
+            row["ask_ratio"] = float((own_ms / base_ms).median())
+        else:
+            row["ask_ms_median"] = float(ask[method])
+            row["ask_ratio"] = float(ask[method] / ask[baseline])
         rows.append(row)
     return pd.DataFrame(rows).set_index("method")
 
@@ -79,8 +89,7 @@ def main(argv=None) -> int:
         df = df[df["family"] == args.family]
         if df.duplicated(["method", "machine_seed"]).any():
             raise SystemExit("a method ran twice on one machine among the files")
-        ask = df.groupby("method")["ask_ms_median"].median()
-        table = paired_scores(df, ask, args.baseline)
+        table = paired_scores(df, None, args.baseline)
     with pd.option_context("display.width", 200):
         print(table.round(3).to_string())
     print(f"(steps in evaluations, gains as fractions of f* - f0, ask in ms; machines: "

@@ -61,6 +61,7 @@ def test_kept_per_run_scores_join_new_runs(tmp_path, capsys):
     d_steps, se_steps = (float(v) for v in row.split()[5:7])  # after the medians
     assert d_steps == pytest.approx(whole.loc["v", "d_steps"], abs=1e-3)
     assert se_steps == pytest.approx(whole.loc["v", "se_steps"], abs=1e-3)
+    assert float(row.split()[-1]) == pytest.approx(1.5)  # 150 / 100 ms on each machine
     df.to_csv(tmp_path / "all.csv", index=False)
     with pytest.raises(SystemExit, match="ran twice"):
         script.main([str(tmp_path / "kept.csv"), str(tmp_path / "all.csv")])
