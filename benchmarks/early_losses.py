@@ -43,11 +43,11 @@ import pandas as pd
 import torch
 from screen_physics import base_spec, parse_variant
 
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.machines import benchmark_ring, machine_optimum
-from pigp_torch.benchmark.protocol import run_one
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.machines import benchmark_ring, machine_optimum
+from pigp_torch.bench.protocol import run_one
+from pigp_torch.machines.ring.spec import as_ring_spec
 from pigp_torch.prior import PhysicsPrior
-from pigp_torch.simulation.spec import as_ring_spec
 
 #: Gain fraction of a good fitted centre and of a reached run.
 GOOD = 0.95

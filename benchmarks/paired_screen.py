@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 from run_scores import scores_of
 
-from pigp_torch.benchmark.scoring import run_scores
+from pigp_torch.bench.scoring import run_scores
 
 
 def paired_table(df: pd.DataFrame, baseline: str = "default") -> pd.DataFrame:

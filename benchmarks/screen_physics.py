@@ -25,10 +25,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pandas as pd
 
-from pigp_torch.benchmark import METHODS, run_benchmark, summarize
-from pigp_torch.benchmark.families import FAMILIES
-from pigp_torch.benchmark.oracle import ORACLE
-from pigp_torch.benchmark.protocol import ENSEMBLE_SIZE, model_prior
+from pigp_torch.bench import METHODS, run_benchmark, summarize
+from pigp_torch.bench.families import FAMILIES
+from pigp_torch.bench.oracle import ORACLE
+from pigp_torch.bench.protocol import ENSEMBLE_SIZE, model_prior
 from pigp_torch.optimizers.physics_bo import BROADER_SHAPE, relaxed_stages
 from pigp_torch.prior import PhysicsPrior
 
