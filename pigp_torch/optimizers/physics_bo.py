@@ -97,7 +97,8 @@ class PhysicsModelBO(BayesianOptimizer):
             ``e`` (that, averaged over the Laplace posterior of the form's parameters,
             :class:`~pigp_torch.optimizers.bo.ExpectedCentreInformation`); overrides
             ``info_every`` (``None``, default: ``info_every``'s
-            alternation of ``u`` and ``i``).
+            alternation of ``u`` and ``i``). ``"uue"`` is the best early-phase schedule
+            screened (docs/results.md), an option, not the default.
         track_schedule: the schedule (letters as ``schedule``) while the learned memory
             follows a drift (a finite memory or a detected step: ``forgetting`` below); default
             ``"uum"``, two UCB asks and a visit of the fitted optimum: a drifting machine is

@@ -40,3 +40,28 @@ def test_paired_differences_and_their_standard_errors(tmp_path, capsys):
     assert "d_steps" in capsys.readouterr().out
     with pytest.raises(ValueError, match="baseline 'x' is not among"):
         script.paired_table(df, "x")
+
+
+def test_kept_per_run_scores_join_new_runs(tmp_path, capsys):
+    """A per-run scores file (benchmarks/run_scores.py) joins traces: the same differences as
+    from the traces alone; --family picks the rows; a run twice on one machine is refused."""
+    script, scores = load_script("paired_screen"), load_script("run_scores")
+    base = [_reaching("default", s, at, 100.0) for s, at in ((1, 10), (2, 20), (3, 99))]
+    new = [_reaching("v", s, at, 150.0) for s, at in ((1, 8), (2, 14), (3, 30))]
+    df = pd.concat(base + new, ignore_index=True)
+    whole = script.paired_table(df, "default")
+    kept = scores.scores_of(df[df["machine_seed"] < 3])
+    other = kept.assign(family="wide", method=kept["method"] + "_wide")  # not picked
+    pd.concat([kept, other]).to_csv(tmp_path / "kept.csv", index=False)
+    df[df["machine_seed"] == 3].to_csv(tmp_path / "new.csv", index=False)
+    assert script.main([str(tmp_path / "kept.csv"), str(tmp_path / "new.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "_wide" not in out
+    row = next(line for line in out.splitlines() if line.startswith("v "))
+    d_steps, se_steps = (float(v) for v in row.split()[5:7])  # after the medians
+    assert d_steps == pytest.approx(whole.loc["v", "d_steps"], abs=1e-3)
+    assert se_steps == pytest.approx(whole.loc["v", "se_steps"], abs=1e-3)
+    assert float(row.split()[-1]) == pytest.approx(1.5)  # 150 / 100 ms on each machine
+    df.to_csv(tmp_path / "all.csv", index=False)
+    with pytest.raises(SystemExit, match="ran twice"):
+        script.main([str(tmp_path / "kept.csv"), str(tmp_path / "all.csv")])

@@ -33,3 +33,9 @@ def test_oracle_variants(screen):
     assert screen.base_spec("oracle").name == "pigp-physics-oracle"
     assert screen.base_spec("oracle-beta6").name == "pigp-physics-oracle"
     assert screen.base_spec("default").name == "pigp-physics"
+
+
+def test_machines_1_to_24_only_when_reported(screen):
+    """The benchmark's machines are refused unless --reported says they are reported."""
+    with pytest.raises(SystemExit, match="--reported to report"):
+        screen.main(["--seeds", "1-2", "default"])
