@@ -22,13 +22,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pandas as pd
 import torch
-from pigp_torch.simulation.deck import spear3_ring
-from pigp_torch.simulation.spec import SPEAR3
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.bench.families import FAMILIES, wide_draw
 from pigp_torch.bench.machines import benchmark_ring, machine_optimum
 from pigp_torch.commands.compare import seed_list
+from pigp_torch.simulation.deck import spear3_ring
+from pigp_torch.simulation.spec import SPEAR3
 
 
 def machine_row(seed: int, family: str, nu0) -> dict:

@@ -31,7 +31,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 import torch
-from pigp_torch.simulation.spec import SPEAR3
 
 from pigp_torch._utils import DTYPE
 from pigp_torch._utils.lbfgsb import minimize_lbfgsb
@@ -45,6 +44,7 @@ from pigp_torch.methods import RunContext
 from pigp_torch.models._inverse_sqrt_fit import _NumpyObjective
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
 from pigp_torch.prior import PhysicsPrior
+from pigp_torch.simulation.spec import SPEAR3
 
 PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
 

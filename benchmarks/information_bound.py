@@ -50,8 +50,6 @@ import dataclasses
 import math
 
 import torch
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spec import SPEAR3
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.bench import model_prior
@@ -60,6 +58,8 @@ from pigp_torch.bench.oracle import machine_peak
 from pigp_torch.bench.protocol import benchmark_ring, machine_optimum
 from pigp_torch.models import InverseSqrtPeakModel
 from pigp_torch.prior import PhysicsPrior
+from pigp_torch.simulation.ring import RingCoupling
+from pigp_torch.simulation.spec import SPEAR3
 
 
 def candidates(model: InverseSqrtPeakModel, x_hat: torch.Tensor, n_sobol: int, seed: int):

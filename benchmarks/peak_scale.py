@@ -32,13 +32,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import pandas as pd
 import scipy.linalg
 import torch
-from pigp_torch.simulation.spec import SPEAR3
 
 from pigp_torch.bench.families import FAMILIES
 from pigp_torch.bench.machines import benchmark_ring
 from pigp_torch.bench.oracle import machine_peak
 from pigp_torch.commands.compare import seed_list
 from pigp_torch.prior import PhysicsPrior
+from pigp_torch.simulation.spec import SPEAR3
 
 PRIOR = "docs/data/prior_spear3_seed0_surrogate.json"
 #: the given model's prior std of log beta (InverseSqrtPeakModel's default)

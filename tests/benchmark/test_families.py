@@ -6,8 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from pigp_torch.simulation.calibration import peak_density
-from pigp_torch.simulation.spec import SPEAR3, RingSpec
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.bench import METHODS
@@ -21,6 +19,8 @@ from pigp_torch.bench.families import (
 from pigp_torch.bench.machines import benchmark_ring, machine_optimum
 from pigp_torch.bench.protocol import run_benchmark, run_one
 from pigp_torch.data.tables import read_table
+from pigp_torch.simulation.calibration import peak_density
+from pigp_torch.simulation.spec import SPEAR3, RingSpec
 
 #: the wide machine the fast tests build (one build, cached per process)
 SEED = 101
@@ -120,9 +120,8 @@ def test_error_scale_range_is_the_ensembles_extremes():
     """ERROR_SCALE_RANGE is the least and largest calibrated error scale of the 40 ensemble
     rings of the user deck with the paper13 knobs. The calibration is a root search whose last
     digits depend on the CPU's round-off (6e-6 apart on two CPUs), so the match is to 1e-4."""
-    from pigp_torch.simulation.ensemble import ensemble_seeds
-
     from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.ensemble import ensemble_seeds
 
     scales = [Spear3Coupling(s).error_scale for s in ensemble_seeds(40)]
     assert min(scales) == pytest.approx(ERROR_SCALE_RANGE[0], rel=1e-4)

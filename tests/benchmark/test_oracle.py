@@ -6,13 +6,13 @@ import math
 
 import pytest
 import torch
-from pigp_torch.simulation.ensemble import ensemble_optima
-from pigp_torch.simulation.spec import SPEAR3
 
 from pigp_torch.bench.oracle import ORACLE, oracle_prior
 from pigp_torch.bench.protocol import benchmark_ring
 from pigp_torch.machine import SimulatedMachine
 from pigp_torch.methods import RunContext
+from pigp_torch.simulation.ensemble import ensemble_optima
+from pigp_torch.simulation.spec import SPEAR3
 
 
 def test_oracle_prior_is_the_machines_own_peak(tiny_prior):

@@ -38,11 +38,10 @@ def test_generalized_eigenvalues_are_those_of_the_whitened_matrix(scale):
 def test_a_machine_against_its_own_peak_is_one_everywhere(scale):
     """With a prior made of the machine's own peak (shape, height, background), every ratio
     of the row is 1 and log beta 0."""
-    from pigp_torch.simulation.spec import SPEAR3
-
     from pigp_torch.bench.machines import benchmark_ring
     from pigp_torch.bench.oracle import machine_peak
     from pigp_torch.prior import PhysicsPrior
+    from pigp_torch.simulation.spec import SPEAR3
 
     prior = PhysicsPrior.load(scale.PRIOR)
     sim = benchmark_ring(103, SPEAR3, True)

@@ -56,9 +56,8 @@ def test_scores_are_noise_free(tiny_table):
     """f_true equals the machine's loss_rate (its own loss-rate map) at the logged knobs, f0 the
     skews-off value, and gain_fraction the best-so-far formula; y differs from f_true by the
     0.04 noise."""
-    from pigp_torch.simulation.spec import SPEAR3
-
     from pigp_torch.bench.protocol import benchmark_ring
+    from pigp_torch.simulation.spec import SPEAR3
 
     for seed in SEEDS:
         sim = benchmark_ring(seed, SPEAR3)
@@ -159,10 +158,9 @@ def test_a_run_uses_float64_defaults_whatever_the_caller_set(tiny_prior):
 def test_each_machine_has_its_own_loss_rate_map():
     """A machine's map is drawn from its seed (same in every call), within the protocol's spread
     of the model's constants; the prior's model ring keeps the model's."""
-    from pigp_torch.simulation.spec import SPEAR3
-
     from pigp_torch.bench.protocol import MAP_SPREAD, benchmark_ring, machine_loss_map
     from pigp_torch.simulation import LOSS_RATE_MAP
+    from pigp_torch.simulation.spec import SPEAR3
 
     maps = [machine_loss_map(s, LOSS_RATE_MAP) for s in range(1, 25)]
     assert maps[0] == machine_loss_map(1, LOSS_RATE_MAP)

@@ -295,9 +295,9 @@ def test_any_ring_from_a_lattice_file(tmp_path, capsys):
     import shutil
 
     import torch
-    from pigp_torch.simulation.deck import deck_path
 
     from pigp_torch.simulation import RingCoupling
+    from pigp_torch.simulation.deck import deck_path
 
     shutil.copy(deck_path("design"), tmp_path / "ring.json")
     knobs = ["01G-QSS4", "02G-QSS3", "05G-QSS3"]
@@ -327,10 +327,10 @@ def test_loss_map_benchmark_is_the_demos_machine(tmp_path, capsys):
     """machine.loss_map: benchmark runs the benchmark's (and pigp demo's) machine of that seed:
     the same noise-free loss rates as the protocol's machine, not those of SPEAR3's own map."""
     import torch
-    from pigp_torch.simulation.spec import RingSpec
 
     from pigp_torch.bench.protocol import benchmark_ring
     from pigp_torch.simulation import Spear3Coupling
+    from pigp_torch.simulation.spec import RingSpec
 
     machine = {"kind": "sim", "error_seed": 1, "noise": 0.0, "loss_map": "benchmark"}
     assert cli.main(["optimize", "--config", write_config(tmp_path, machine=machine)]) == 0

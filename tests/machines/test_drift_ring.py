@@ -28,9 +28,8 @@ def test_families_listed_and_unknown_refused():
 
 
 def test_theta_is_deterministic_per_seed(machine):
-    from pigp_torch.simulation.spec import as_ring_spec
-
     from pigp_torch.bench.machines import benchmark_ring
+    from pigp_torch.simulation.spec import as_ring_spec
 
     sim = benchmark_ring(101, as_ring_spec(None), True)
     a, b = R.draw_theta(sim, "drift-step", 101), R.draw_theta(sim, "drift-step", 101)
