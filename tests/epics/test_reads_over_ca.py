@@ -205,7 +205,13 @@ def test_an_always_invalid_objective_stops_the_run(alarms, probe, ring, tmp_path
     end = log.last_end
     assert end["status"] == "aborted" and end["restored"] is True
     assert end["restored_to"] == "initial"
-    assert len(log.discarded) == 3 and all("INVALID" in d["reason"] for d in log.discarded)
+    invalid = [d for d in log.discarded if "INVALID" in d["reason"]]
+    assert len(invalid) == 3
+    # a reading far from the run's median whose re-read (read 9 on) came back INVALID is also
+    # discarded, unconfirmed; whether the read before the fault was such a step depends on the
+    # ask and the IOC's noise, so it may or may not be there
+    others = [d for d in log.discarded if "INVALID" not in d["reason"]]
+    assert len(others) <= 1 and all("not confirmed" in d["reason"] for d in others)
     assert final_setpoints(ioc, mark) == START
     assert torch.equal(probe.read_many(ioc.setpoint_pvs[:3]), torch.tensor(START))
     if at == "start":
