@@ -38,10 +38,10 @@ from pigp_torch.optimizers import BayesOpt
 from pigp_torch.optimizers.fast_bo import FastBayesOpt
 from pigp_torch.prior import PhysicsPrior
 
-#: Sizes of the issue: observations and knob counts.
+#: Sizes of the benchmark: observations and knob counts.
 DEFAULT_NS = (10, 50, 150, 500)
 DEFAULT_DIMS = (13, 72)
-#: The stock path's ``optimize_acqf`` settings (the issue's definition).
+#: The stock path's ``optimize_acqf`` settings (the benchmark's definition).
 STOCK_OPTIONS = {"num_restarts": 10, "raw_samples": 256}
 #: FastBayesOpt's search as in the benchmark method ``pigp-fast`` (10 Newton restarts).
 FAST_OPTIONS = {"num_restarts": 10, "raw_samples": 256}

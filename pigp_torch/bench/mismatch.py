@@ -61,7 +61,7 @@ class Case:
         options: method options (e.g. ``center_mean``) from ``(prior) -> dict``.
         machine_maps: the machines' loss-rate maps (``True``: the protocol's; ``(a, b)``:
             background × a, Touschek scale × b of the model's constants).
-        mild: one of the cases where the issue asks for a gain ≥ 0.85 after 40 evaluations.
+        mild: one of the mild cases (target: a gain ≥ 0.85 after 40 evaluations).
     """
 
     name: str

@@ -57,10 +57,8 @@ class SurrogateMLP(nn.Module):
     quadratic in the skew strengths and the loss rate behaves like
     :math:`f_\infty + A/\sqrt{1 + q(x)}`, so :math:`v = (1 + q(x))/A^2` is (nearly) a quadratic
     bowl that a small network fits with an accurate Hessian, whereas :math:`\log(1 + q)` has
-    its curvature concentrated at the peak and a fitted network flattens it. Measured relative
-    Hessian errors at the optimum (13 knobs, 100k samples, same training): synthetic
-    :math:`f_\infty + A/\sqrt{1+q}` 0.4 % against 2.6 %; the SPEAR3-like simulator 6-7 %
-    against 10-25 %.
+    its curvature concentrated at the peak and a fitted network flattens it (the Hessian errors
+    of the two targets are compared in docs/results.md).
 
     Bounds, :math:`f_\infty`, :math:`m` and :math:`s` are float64 buffers: they travel with
     ``state_dict``, ``.to(device)`` and ``.double()``, and are cast to the weights' dtype inside
