@@ -21,18 +21,15 @@ import sys
 from pigp_torch.commands.compare import seed_list as _seed_list  # noqa: F401  (benchmarks/ use it)
 
 #: Modules of ``pigp_torch.commands``, each with ``register(sub, bench)`` adding its sub-parsers.
+#: ``kinds`` adds each machine kind's commands (the ring's ``generate-data``, ``compare``,
+#: ``demo``, ``serve-sim``, ``bench simulator``, ``bench spear3``; ARES-EA's ``bench ares``).
 COMMAND_MODULES: tuple[str, ...] = (
-    "generate_data",
+    "kinds",
     "train_surrogate",
     "build_prior",
-    "compare",
-    "demo",
-    "bench_simulator",
     "optimize",
-    "serve_sim",
     "badger_setup",
     "bench_bo",
-    "bench_kinds",
     "report",
 )
 

@@ -10,16 +10,17 @@ unit the modules import each other without a cycle.
 layer  units
 =====  =========================================================================================
 12     ``cli`` (the ``pigp`` parser), the package root (a lazy facade)
-11     ``commands`` (one module per ``pigp`` command; the ring options), ``badger_plugins``
-       (Badger's entry point), ``benchmark`` (the old path of ``bench``: aliases only)
+11     ``commands`` (one module per ``pigp`` command; each kind's commands through the registry;
+       the ring's old command paths, aliases), ``badger_plugins``
+       (Badger's entry point), ``benchmark`` (the first path of ``bench``: aliases only)
 10     every machine kind: ``machines.<kind>`` (one folder each: ``machines.ares_ea``,
        ``machines.ring``); a kind imports the core, never another kind
-9      ``bench`` (the library of ``pigp bench``: the protocol and the demo), ``reporting`` (run
-       reports and the dashboard), ``machines.contract`` (the contract tests every machine kind
-       inherits)
+9      ``bench`` (the library of ``pigp bench``: the BO speed run; the old path of the ring's
+       benchmark, aliases), ``reporting`` (run reports and the dashboard), ``machines.contract``
+       (the contract tests every machine kind inherits)
 8      ``loop`` (the run loop: the loop, run files (``config``), runs (``run``), progress),
-       ``testing`` (the old path of ``simulated_epics``: aliases only)
-7      ``simulated_epics`` (the simulated ring as EPICS servers)
+       ``testing`` (an older path of the ring's simulated EPICS servers: aliases only)
+7      ``simulated_epics`` (the old path of the ring's simulated EPICS servers: aliases only)
 6      ``methods`` (the method registry), ``machine`` (the Machine protocol and machines)
 5      ``integrations`` (Xopt and Badger glue)
 4      ``optimizers`` (ask/tell)
@@ -31,12 +32,12 @@ layer  units
        ``_version``
 =====  =========================================================================================
 
-The core (every unit but the kinds) finds the kinds only through the registry
-(``pigp_torch.machines.KINDS``, which imports each kind's folder by name when first used), never
-by an import; the exceptions are :data:`ALIASES`, modules at the old paths of moved names that
-only re-export them (``simulation`` is nothing else now: the ring's simulation is in
-``machines.ring``), and :data:`RING_USERS`, the modules of the core that are the ring's own but
-have not moved into its folder. An import of an alias counts as an import of what it re-exports.
+The core (every unit but the kinds, ``commands`` and ``cli``) finds the kinds only through the
+registry (``pigp_torch.machines.KINDS``, which imports each kind's folder by name when first used),
+never by an import; the only exceptions are :data:`ALIASES`, modules at the old paths of moved
+names that only re-export them (``simulation``, ``simulated_epics`` and ``testing`` are nothing
+else now: the ring's simulation, benchmark and EPICS servers are in ``machines.ring``). An import
+of an alias counts as an import of what it re-exports.
 """
 
 from __future__ import annotations
@@ -73,34 +74,23 @@ ALIASES = frozenset(
         "pigp_torch.simulation.ares",
         "pigp_torch.commands.bench_ares",
         "pigp_torch.simulation",
+        "pigp_torch.bench",
+        "pigp_torch.benchmark",
+        "pigp_torch.simulated_epics",
+        "pigp_torch.testing",
     }
 )
 #: Old package paths whose modules import as the moved modules themselves
-#: (:func:`pigp_torch._utils.aliases.alias_package`): ``old.<m>`` is ``new.<m>``.
+#: (:func:`pigp_torch._utils.aliases.alias_package`): ``old.<m>`` is ``new.<m>`` (followed through
+#: when ``new`` is an old path too); a module that exists at ``old`` is its own.
 ALIAS_PACKAGES = {
     "pigp_torch.simulation": "pigp_torch.machines.ring",
     "pigp_torch.benchmark": "pigp_torch.bench",
+    "pigp_torch.bench": "pigp_torch.machines.ring.bench",
+    "pigp_torch.simulated_epics": "pigp_torch.machines.ring.simulated_epics",
     "pigp_torch.testing": "pigp_torch.simulated_epics",
+    "pigp_torch.commands": "pigp_torch.machines.ring.commands",
 }
-#: Modules of the core that are the ring's own and import the ring kind (through the old paths of
-#: :data:`ALIASES`): the "spear3-13" benchmark protocol and demo, the simulated ring's EPICS
-#: servers and the ``kind: sim`` run-file section. Exact: a module of the core that starts to
-#: import a kind fails the tests, and one that stops must leave the list.
-RING_USERS = frozenset(
-    {
-        "pigp_torch.bench.demo",
-        "pigp_torch.bench.families",
-        "pigp_torch.bench.machines",
-        "pigp_torch.bench.mismatch",
-        "pigp_torch.bench.oracle",
-        "pigp_torch.bench.protocol",
-        "pigp_torch.bench.scoring",
-        "pigp_torch.loop.config.machines",
-        "pigp_torch.simulated_epics.ioc",
-        "pigp_torch.simulated_epics.ioc_process",
-        "pigp_torch.simulated_epics.pva",
-    }
-)
 
 
 def _module_name(path: Path) -> str:
@@ -155,21 +145,24 @@ def _graph() -> dict[str, set[str]]:
     return {name: _imports(path, name, known) for name, path in modules.items()}
 
 
+def _resolve(target: str, graph: dict[str, set[str]], seen: frozenset[str] = frozenset()):
+    """The modules an import of ``target`` reaches: a module of an alias package is the moved
+    module (:data:`ALIAS_PACKAGES`), an alias module (:data:`ALIASES`) what it imports, each
+    followed through; any other module itself."""
+    old = next((o for o in ALIAS_PACKAGES if target.startswith(o + ".")), None)
+    if target not in graph and old is not None:  # a module of an alias package
+        return _resolve(ALIAS_PACKAGES[old] + target[len(old) :], graph, seen)
+    if target not in ALIASES or target in seen:
+        return {target}
+    return set().union(*(_resolve(t, graph, seen | {target}) for t in graph[target]))
+
+
 def _resolved_graph() -> dict[str, set[str]]:
-    """:func:`_graph` with every import of an alias module replaced by what the alias imports
-    (an alias of an alias followed through)."""
+    """:func:`_graph` with every import of an alias replaced by what it reaches (:func:`_resolve`;
+    an alias module keeps its own imports)."""
     graph = _graph()
-
-    def resolve(target: str, seen: frozenset[str] = frozenset()) -> set[str]:
-        old = next((o for o in ALIAS_PACKAGES if target.startswith(o + ".")), None)
-        if target not in graph and old is not None:  # a module of an alias package
-            return {ALIAS_PACKAGES[old] + target[len(old) :]}
-        if target not in ALIASES or target in seen:
-            return {target}
-        return set().union(*(resolve(t, seen | {target}) for t in graph[target]))
-
     return {
-        m: set().union(*(resolve(t) for t in targets)) if m not in ALIASES else targets
+        m: set().union(*(_resolve(t, graph) for t in targets)) if m not in ALIASES else targets
         for m, targets in graph.items()
     }
 
@@ -222,7 +215,7 @@ def test_units_import_only_lower_layers_and_never_the_root():
             a, b = _unit(module), _unit(target)
             if target == "pigp_torch" and module != "pigp_torch":
                 bad.append(f"{module} imports the package root")
-            elif module in ALIASES or (module in RING_USERS and b == "machines.ring"):
+            elif module in ALIASES:
                 continue
             elif a != b and _layer(b) >= _layer(a):
                 bad.append(f"{module} (layer {_layer(a)}) imports {target} (layer {_layer(b)})")
@@ -242,29 +235,30 @@ def test_each_machine_kind_is_a_folder_and_the_core_never_imports_one():
 
     assert _kinds() == {"machines.ares_ea", "machines.ring"}
     assert {type(k).__module__ for k in KINDS.values()} == {f"pigp_torch.{k}" for k in _kinds()}
-    bad, ring_users = [], set()
+    bad = []
     for module, targets in _resolved_graph().items():
         a = _unit(module)
         for target in targets:
             b = _unit(target)
-            if b in _kinds() and a != b and a not in ("commands", "cli"):
-                if module in RING_USERS and b == "machines.ring":
-                    ring_users.add(module)
-                elif module not in ALIASES:
-                    bad.append(f"{module} imports the kind module {target}")
+            if b in _kinds() and a != b and a not in ("commands", "cli") and module not in ALIASES:
+                bad.append(f"{module} imports the kind module {target}")
     assert bad == []
-    assert ring_users == RING_USERS, "RING_USERS is exact: remove a module that stopped"
 
 
 def test_an_import_of_an_alias_counts_as_an_import_of_the_kind():
-    """The old paths of the ring's simulation lead into the ring's folder (so the checks above
-    see a module of the core that imports ``pigp_torch.simulation`` as importing the kind)."""
-    graph = _resolved_graph()
-    ioc = graph["pigp_torch.simulated_epics.ioc"]
-    assert "pigp_torch.machines.ring.spec" in ioc
-    assert not any(t.startswith("pigp_torch.simulation") for t in ioc)
-    assert all(_unit(t) == "machines.ring" for t in graph["pigp_torch.bench.scoring"]
-               if t.startswith("pigp_torch.machines."))  # fmt: skip
+    """The old paths lead into the ring's folder, through an alias package, an alias of an alias
+    package and an alias module (so the checks above see a module of the core that imports
+    ``pigp_torch.testing.ioc`` as importing the kind); a module that exists at an old path is its
+    own."""
+    graph = _graph()
+    ring = "pigp_torch.machines.ring"
+    assert _resolve("pigp_torch.testing.ioc", graph) == {f"{ring}.simulated_epics.ioc"}
+    assert _resolve("pigp_torch.benchmark.protocol", graph) == {f"{ring}.bench.protocol"}
+    assert _resolve("pigp_torch.simulation.spec", graph) == {f"{ring}.spec"}
+    assert _resolve("pigp_torch.bench.bo_speed", graph) == {"pigp_torch.bench.bo_speed"}
+    bench = _resolve("pigp_torch.bench", graph) - {"pigp_torch._utils.aliases"}
+    assert bench == {f"{ring}.bench"}
+    assert not any(_unit(t) in _kinds() for t in _resolve("pigp_torch.loop.config", graph))
 
 
 def test_alias_modules_only_re_export_a_kind():
@@ -347,15 +341,14 @@ def test_the_bo_core_parts_import_no_recipe():
 
 
 #: Modules whose functions are held to :data:`MAX_FUNCTION_LINES`: the BO core, the run loop,
-#: the prior, the surrogate, the benchmark's protocol and job runner, and the machine kinds.
+#: the prior, the surrogate, and the machine kinds (the ring's benchmark protocol and job runner
+#: among them).
 SHORT_FUNCTIONS = (
     *BO_CORE,
     "pigp_torch.machines",
     "pigp_torch.loop",
     "pigp_torch.prior",
     "pigp_torch.surrogate",
-    "pigp_torch.bench.protocol",
-    "pigp_torch.bench.distributed",
 )
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 80
@@ -396,7 +389,7 @@ def test_the_length_checks_see_a_long_function():
     assert _long_functions("m", "def g():\n    return 1\n") == []
     held = {m for m in _modules() if m.startswith(SHORT_FUNCTIONS)}
     assert {"pigp_torch.loop.core", "pigp_torch.prior.build", "pigp_torch.surrogate.train"} <= held
-    assert "pigp_torch.bench.protocol" in held
+    assert "pigp_torch.machines.ring.bench.protocol" in held
 
 
 def test_a_kinds_modules_are_one_unit_above_the_core():

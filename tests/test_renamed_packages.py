@@ -1,7 +1,8 @@
-"""Packages renamed to say what they hold keep their old paths: ``pigp_torch.testing`` (now
-``pigp_torch.simulated_epics``, the simulated EPICS servers) and ``pigp_torch.benchmark`` (now
-``pigp_torch.bench``, the library behind ``pigp bench``); every old module is the moved module
-itself."""
+"""Packages renamed to say what they hold, or moved into the ring kind's folder, keep their old
+paths: ``pigp_torch.testing`` and ``pigp_torch.simulated_epics`` (the simulated EPICS servers, now
+``pigp_torch.machines.ring.simulated_epics``), ``pigp_torch.benchmark`` and ``pigp_torch.bench``
+(the ring's "spear3-13" benchmark and demo, now ``pigp_torch.machines.ring.bench``; ``bench`` keeps
+the BO speed run); every old module is the moved module itself."""
 
 from __future__ import annotations
 
@@ -14,27 +15,34 @@ import pytest
 
 import pigp_torch.bench
 import pigp_torch.benchmark
+import pigp_torch.machines.ring.bench
+import pigp_torch.machines.ring.simulated_epics
 import pigp_torch.simulated_epics
 import pigp_torch.testing
 
+RING_BENCH = pigp_torch.machines.ring.bench
+RING_EPICS = pigp_torch.machines.ring.simulated_epics
+
 
 @pytest.mark.parametrize(
-    ("old", "moved"),
+    ("old", "moved", "kept"),
     [
-        (pigp_torch.testing, pigp_torch.simulated_epics),
-        (pigp_torch.benchmark, pigp_torch.bench),
+        (pigp_torch.testing, RING_EPICS, []),
+        (pigp_torch.simulated_epics, RING_EPICS, []),
+        (pigp_torch.benchmark, RING_BENCH, ["ares"]),
+        (pigp_torch.bench, RING_BENCH, ["bo_speed"]),
     ],
 )
-def test_every_module_keeps_its_old_path_as_the_same_module(old, moved):
+def test_every_module_keeps_its_old_path_as_the_same_module(old, moved, kept):
     """``<old>.<m>`` is ``<moved>.<m>`` (one module object: state and monkeypatches are
     shared), and the old package re-exports every public name of the moved one; a module the
-    moved package lacks is not found at the old path either."""
+    moved package lacks is not found at the old path either. At the old path stays only what
+    did not move (``kept``: the ARES-EA benchmark's own alias, the BO speed run), so git sees the
+    files as moved."""
     names = sorted(m.name for m in pkgutil.iter_modules(moved.__path__))
     assert len(names) >= 6
-    # nothing else stays at the old path (git sees the files as moved); benchmark.ares is the
-    # ARES-EA benchmark's own alias
     olds = sorted(m.name for m in pkgutil.iter_modules(old.__path__))
-    assert olds == (["ares"] if old is pigp_torch.benchmark else [])
+    assert olds == kept
     for name in names:
         a = importlib.import_module(f"{old.__name__}.{name}")
         assert a is importlib.import_module(f"{moved.__name__}.{name}"), name
@@ -43,6 +51,26 @@ def test_every_module_keeps_its_old_path_as_the_same_module(old, moved):
     assert all(getattr(old, n) is getattr(moved, n) for n in moved.__all__)
     with pytest.raises(ModuleNotFoundError):
         importlib.import_module(f"{old.__name__}.no_such_module")
+
+
+def test_a_module_that_stayed_is_its_own():
+    """``pigp_torch.bench.bo_speed`` (generic, not the ring's) stayed; its older path
+    ``pigp_torch.benchmark.bo_speed`` is the same module, and nothing of the ring shadows it."""
+    import pigp_torch.bench.bo_speed as speed
+
+    assert speed.__spec__.name == "pigp_torch.bench.bo_speed"
+    assert importlib.import_module("pigp_torch.benchmark.bo_speed") is speed
+    assert not hasattr(RING_BENCH, "bo_speed")
+
+
+def test_a_moved_module_patched_at_its_old_path_is_patched_everywhere(monkeypatch):
+    """A monkeypatch through an old path (tests and outside checks do this) reaches the code
+    that runs: the protocol's noise as ``pigp_torch.bench.protocol.NOISE`` is the ring's."""
+    import pigp_torch.bench.protocol as old
+
+    monkeypatch.setattr(old, "NOISE", 0.5)
+    assert RING_BENCH.protocol.NOISE == 0.5
+    assert importlib.import_module("pigp_torch.benchmark.protocol").NOISE == 0.5
 
 
 def test_the_ares_benchmark_keeps_its_old_entry_points():

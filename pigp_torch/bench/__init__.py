@@ -1,20 +1,33 @@
-"""The library behind ``pigp bench``: the "spear3-13" benchmark (methods x simulated machines,
-noise-free scores, summary, figures), the demo, and the BO speed and distributed runs (the
-``benchmarks/`` scripts at the top level are studies that use it)."""
+"""The library behind ``pigp bench``: the BO speed run (:mod:`.bo_speed`, ``pigp bench bo``).
 
-from pigp_torch.bench.archive import machine_archive
-from pigp_torch.bench.figures import plot_prior_mean, plot_runs
-from pigp_torch.bench.protocol import (
+The "spear3-13" benchmark of the ring (the protocol, scoring, figures, the demo, its job runner)
+moved to the ring kind's folder, :mod:`pigp_torch.machines.ring.bench` (``pigp bench spear3``);
+its names here and each of its modules at its old path (``pigp_torch.bench.protocol``, ... as
+the moved module itself) still import."""
+
+from pigp_torch._utils.aliases import alias_package
+from pigp_torch.machines.ring.bench import (
+    BO_DEFAULTS,
+    DEFAULT_BUDGETS,
+    METHODS,
     NOISE,
+    MethodSpec,
+    RunContext,
+    first_moves,
+    machine_archive,
     machine_optimum,
     model_prior,
+    plot_prior_mean,
+    plot_runs,
     run_benchmark,
     run_one,
+    run_scores,
     run_seed,
     score_run,
+    summarize,
 )
-from pigp_torch.bench.scoring import first_moves, run_scores, summarize
-from pigp_torch.methods import BO_DEFAULTS, DEFAULT_BUDGETS, METHODS, MethodSpec, RunContext
+
+alias_package(__name__, "pigp_torch.machines.ring.bench")
 
 __all__ = [
     "BO_DEFAULTS",

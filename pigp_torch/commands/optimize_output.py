@@ -26,30 +26,15 @@ def print_plan(setup, records, out) -> None:
     names, bounds = c.knob_names, c.bounds()
     m = c.machine
     (k, yu), ku = display_unit(c.objective_unit), c.knob_unit  # readings as a person reads them
-    if m.kind == "sim":
-        ring = f"SPEAR3 {m.optics}" if m.lattice is None else f"lattice {m.lattice}"
-        maps = {"model": "the ring's loss-rate map", "benchmark": "the benchmark's loss-rate map"}
-        machine = (
-            f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
-            f"{m.noise:g} {yu}, noise seed {m.seed})"
-        )
-    elif m.kind == "ares-sim":
-        where = "the shipped trials" if m.trials is None else str(m.trials)
-        machine = (
-            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
-            f"screen noise {1e6 * m.noise:g} µm, noise seed {m.seed}; objective "
-            f"{getattr(setup.machine, 'objective', '?')})"
-        )
-    else:
-        machine = f"EPICS (objective PV {c.objective.pv})"
+    machine = f"EPICS (objective PV {c.objective.pv})"
+    if m.kind != "epics":  # a machine kind's simulated machine, in its kind's words
+        from pigp_torch.machines import KINDS
+
+        machine = KINDS.by_run_file_kind(m.kind).describe(c, setup.machine)
     from pigp_torch.loop import effective_max_step
     from pigp_torch.loop.moves import setpoints_of
 
     now = setpoints_of(setup.machine).tolist()  # setpoints: what a ramp starts from
-    if m.kind not in ("sim", "ares-sim", "epics"):  # another machine kind's simulated machine
-        from pigp_torch.machines import KINDS
-
-        machine = KINDS.by_run_file_kind(m.kind).describe(m, setup.machine)
 
     limit = effective_max_step(setup.machine, bounds, c.machine_max_step())
     print(f"plan: {c.method.name} on the {machine}", file=out)
@@ -61,7 +46,7 @@ def print_plan(setup, records, out) -> None:
         f" the objective ({yu}), options {c.method.options or '{}'}, seed {c.method.seed}",
         file=out,
     )
-    units = getattr(setup.machine, "knob_units", None)  # one per knob: a column of its own
+    units = setup.machine.knob_units  # one per knob (a column of its own), or None
     heads = ("lower", "upper", "now", "max step")
     head = "".join(f"{h if units else h + ' (' + ku + ')':>14}" for h in heads)
     print(f"  {'knob':<14}{head}{'  unit' if units else ''}", file=out)
@@ -79,7 +64,7 @@ def print_plan(setup, records, out) -> None:
         file=out,
     )
     opts = setup.options()
-    rng = opts.objective_range or getattr(setup.machine, "objective_limits", None)
+    rng = opts.objective_range or setup.machine.objective_limits
     rng_text = "none" if rng is None else f"[{k * rng[0]:g}, {k * rng[1]:g}] {yu}"
     noise = noise_in_force(setup, records)
     print(f"  readings: objective range {rng_text}; reading noise {noise}", file=out)
@@ -103,8 +88,12 @@ def noise_in_force(setup, records) -> str:
     c, opts = setup.config, setup.options()
     k, yu = display_unit(c.objective_unit)
     if opts.noise is not None:
+        from pigp_torch.machines import KINDS
+
+        kind = KINDS.by_run_file_kind(c.machine.kind)  # None: the epics section
+        simulator = kind is not None and kind.stated_noise(c.machine) is not None
         where = "objective_noise" if c.objective_noise is not None else (
-            "the simulator's" if c.machine.kind == "sim" else "the prior's")  # fmt: skip
+            "the simulator's" if simulator else "the prior's")  # fmt: skip
         return f"{k * opts.noise:g} {yu} (stated: {where})"
     logged = logged_noise(records) if records is not None else None
     if logged is not None:

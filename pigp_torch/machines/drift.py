@@ -189,11 +189,13 @@ def interpolate_track(times: np.ndarray, values: np.ndarray, t) -> np.ndarray:
 
 
 def drive(machine, optimizer, readings: int, *, set_back: bool = True):
-    r"""Run an ask/tell ``optimizer`` on ``machine`` for ``readings`` readings: reading 0 at the
-    start setting, reading :math:`t \ge 1` at the optimizer's ``t``-th ask; each reading is told
-    (with the observables when the optimizer fits them, ``uses_observables``). With ``set_back``
-    the knobs then go to the optimizer's recommended setting (``recommend()``, where the
-    optimizer puts the optimum now; ``best()``'s setting for one without it) and one more
+    r"""Run an ask/tell ``optimizer`` (an :class:`~pigp_torch.optimizers.AskTellOptimizer`:
+    ``ask``, ``tell``, the declared ``uses_observables`` and ``recommend``) on ``machine`` for
+    ``readings`` readings: reading 0 at the start setting, reading :math:`t \ge 1` at the
+    optimizer's ``t``-th ask; each reading is told (with the observables when the optimizer fits
+    them, ``uses_observables``). With ``set_back`` the knobs then go to the optimizer's
+    recommended setting (``recommend()``, where the optimizer puts the optimum now; by default
+    ``best()``'s setting) and one more
     reading is taken.
 
     Returns:
@@ -206,7 +208,7 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
     if int(readings) < 1:
         raise ValueError(f"readings must be >= 1, got {readings}")
     X, true = [], []
-    fits = bool(getattr(optimizer, "uses_observables", False))
+    fits = bool(optimizer.uses_observables)
     for t in range(int(readings)):
         if t > 0:
             machine.set(optimizer.ask())
@@ -215,8 +217,7 @@ def drive(machine, optimizer, readings: int, *, set_back: bool = True):
         optimizer.tell(X[-1], y, **({"observables": machine.last_observables} if fits else {}))
         true.append(machine.last_true_observables.clone())
     if set_back:
-        recommend = getattr(optimizer, "recommend", None)
-        machine.set(recommend() if recommend is not None else optimizer.best()[0])
+        machine.set(optimizer.recommend())
         machine.read()
         X.append(machine.get())
         true.append(machine.last_true_observables.clone())

@@ -11,12 +11,13 @@ A *machine kind* is one accelerator family with everything the package needs to 
 * ``section()``: the pydantic class of its run-file section (``machine: {kind: <run_file_kind>,
   ...}``), ``check_run(config, method)`` (the checks of a run file that need the simulation),
   ``simulated_machine(config)`` (the machine ``pigp optimize`` runs on) and
-  ``describe(section, machine)`` (that machine in words), ``methods_noise(section)`` and
+  ``describe(config, machine)`` (that machine in words), ``methods_noise(section)`` and
   ``stated_noise(section)`` (the reading noise its methods and the loop are told);
 * ``register_methods(register)``: the methods it adds to :data:`pigp_torch.methods.METHODS`
   (its :attr:`default_method` among them, or a generic one);
 * ``benchmark(**options)``: its benchmark task (a table, one row per method, trial and step),
-  and ``register_bench(bench)`` its ``pigp bench <name>`` command;
+  ``register_bench(bench)`` its ``pigp bench <name>`` commands and ``register_commands(sub)`` its
+  top-level ``pigp`` commands (the ring's ``compare``, ``demo``, ...);
 * ``true_objective(config, say)``: the noise-free objective of its simulated machine, which the
   run report draws (:class:`TrueObjective`).
 
@@ -120,9 +121,11 @@ class MachineKind:
         ``objective_noise``. Default ``None`` (then the prior's noise, if any)."""
         return None
 
-    def describe(self, section: Any, machine: Any) -> str:
-        """The simulated machine of a run file's section in words (the plan of ``pigp optimize
-        --dry-run``: "plan: METHOD on the <this>"). Default: the kind's title."""
+    def describe(self, config: Any, machine: Any) -> str:
+        """The simulated machine of a validated run file ``config`` whose section
+        (``config.machine``) is the kind's, built as ``machine``, in words with the units of its
+        numbers (the plan of ``pigp optimize --dry-run``: "plan: METHOD on the <this>").
+        Default: the kind's title."""
         return f"simulated {self.title}"
 
     def true_objective(self, config: Any, say: Callable[[str], None]) -> TrueObjective | None:
@@ -134,6 +137,11 @@ class MachineKind:
     def register_bench(self, bench: Any) -> None:
         """Add the kind's ``pigp bench <name>`` to ``bench`` (the sub-parsers of ``pigp
         bench``: ``bench.add_parser(name, ...)``), importing nothing heavy. Default: none."""
+
+    def register_commands(self, sub: Any) -> None:
+        """Add the kind's top-level ``pigp`` commands to ``sub`` (the sub-parsers of ``pigp``:
+        ``sub.add_parser(name, ...)``, each setting ``func``), importing nothing heavy. Default:
+        none."""
 
     def register_methods(self, register: Callable[[Any], Any]) -> None:
         """Add the kind's methods with ``register(MethodSpec(...))``. Default: none."""

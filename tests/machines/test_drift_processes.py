@@ -17,6 +17,7 @@ from pigp_torch.machines.drift import (
     optimum_track,
     window_statistic,
 )
+from pigp_torch.optimizers import AskTellOptimizer
 
 
 def test_linear_path_is_rate_times_reading():
@@ -110,10 +111,11 @@ class _Toy:
         return float(-((self.x - 1) ** 2))
 
 
-class _Grid:
-    """Asks 0.5, 1.0, 2.0, ...; best() is the best told."""
+class _Grid(AskTellOptimizer):
+    """Asks 0.5, 1.0, 2.0, ...; best() is the best told (and so ``recommend()``, the default)."""
 
     def __init__(self):
+        super().__init__(torch.tensor([[0.0], [4.0]], dtype=torch.float64))
         self.asks, self.told = iter([0.5, 1.0, 2.0, 3.0]), []
 
     def ask(self):

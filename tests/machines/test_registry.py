@@ -68,14 +68,16 @@ def test_a_kinds_method_runs_on_its_own_machine_only():
 
 
 def test_each_kind_gives_its_simulator_and_its_benchmark_task():
-    from pigp_torch.loop.config import SimMachineConfig
+    from pigp_torch.loop.config.sections import SECTIONS
     from pigp_torch.machines.ares_ea.benchmark import STEP_COLUMNS
     from pigp_torch.machines.ares_ea.machine import AresMachine
     from pigp_torch.machines.ares_ea.simulation import load_trials
+    from pigp_torch.machines.ring.section import SimMachineConfig
     from pigp_torch.simulation import Spear3Coupling
 
     ring = KINDS["spear3"]
     assert ring.section() is SimMachineConfig and ring.default_method == "pigp-physics"
+    assert SECTIONS["sim"] is SimMachineConfig  # the run-file schema takes it from the kind
     sim = ring.simulator(error_seed=2)
     assert isinstance(sim, Spear3Coupling) and sim.error_seed == 2
     ares = KINDS["ares-ea"]

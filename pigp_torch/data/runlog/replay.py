@@ -42,7 +42,8 @@ def replay(
     fit and an acquisition optimization for BayesOpt).
 
     Args:
-        optimizer: a fresh ask/tell optimizer.
+        optimizer: a fresh :class:`~pigp_torch.optimizers.AskTellOptimizer` (its declared
+            ``n_told``, ``bounds`` and ``uses_observables`` are read).
         records: a :class:`RunRecords` or evaluation records (dicts with ``x`` and ``y``, in step
             order).
         tol: allowed difference between asked and logged points, a fraction of the knob range.
@@ -53,10 +54,9 @@ def replay(
             one (the message names the step and both points).
     """
     evaluations = _evaluations(records)
-    if getattr(optimizer, "n_told", 0):
+    if optimizer.n_told:
         raise ReplayError("replay needs a fresh optimizer (this one has already been told data)")
-    bounds = getattr(optimizer, "bounds", None)
-    width = None if bounds is None else (bounds[1] - bounds[0])
+    width = optimizer.bounds[1] - optimizer.bounds[0]
     it = evaluations
     if progress:
         from tqdm.auto import tqdm
@@ -66,7 +66,7 @@ def replay(
         x = torch.tensor(floats(rec["x"]), dtype=DTYPE)
         if k > 0:
             asked = torch.as_tensor(optimizer.ask(), dtype=DTYPE).reshape(-1)
-            limit = tol * (width if width is not None else torch.ones_like(x))
+            limit = tol * width
             if asked.shape != x.shape or not bool(((asked - x).abs() <= limit).all()):
                 raise ReplayError(
                     f"replay diverged at step {k}: the optimizer asks {asked.tolist()} but the "
@@ -85,7 +85,7 @@ def tell(optimizer, x: torch.Tensor, y: float, observables: Sequence[float] | No
     """``optimizer.tell(x, y)``; with ``observables=`` (an ``m`` float64 tensor) when the
     optimizer fits them (``uses_observables``) and the reading has them (the loop and
     :func:`replay` tell alike)."""
-    if observables is not None and getattr(optimizer, "uses_observables", False):
+    if observables is not None and optimizer.uses_observables:
         optimizer.tell(x, y, observables=torch.tensor(list(observables), dtype=DTYPE))
     else:
         optimizer.tell(x, y)

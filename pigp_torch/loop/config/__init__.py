@@ -10,7 +10,6 @@ from pigp_torch.loop.config.schema import (
     MethodConfig,
     ObjectiveConfig,
     RunConfig,
-    SimMachineConfig,
     config_digest,
 )
 
@@ -21,7 +20,6 @@ __all__ = [
     "MethodConfig",
     "ObjectiveConfig",
     "RunConfig",
-    "SimMachineConfig",
     "config_digest",
     "format_errors",
     "invalid",

@@ -78,8 +78,8 @@ from pigp_torch.loop.config.machines import (
     Flag,
     Integer,
     Number,
-    SimMachineConfig,
     _resolve,
+    _same_knobs,
     _Section,
 )
 from pigp_torch.loop.config.sections import MachineConfig
@@ -118,8 +118,8 @@ class RunConfig(_Section):
     r"""A validated ``pigp optimize`` run (see the module docstring for the file format).
 
     Attributes:
-        machine: :class:`SimMachineConfig`, :class:`EpicsMachineConfig` or a machine kind's
-            section (``ares-sim``), by ``kind`` (:mod:`~pigp_torch.loop.config.sections`).
+        machine: :class:`EpicsMachineConfig` or a machine kind's section (``sim``: the
+            ring's, ``ares-sim``), by ``kind`` (:mod:`~pigp_torch.loop.config.sections`).
         knobs: ``{name: (lower, upper)}`` in knob order.
         objective: :class:`ObjectiveConfig`.
         method: :class:`MethodConfig`.
@@ -261,8 +261,7 @@ class RunConfig(_Section):
                 "half-range); write max_step: unlimited to run without a step limit on purpose"
             )
         m = self.machine
-        if isinstance(m, SimMachineConfig) and isinstance(m.knob_calibration, dict):
-            _same_knobs("machine.knob_calibration", m.knob_calibration, names)
+        m.check_knobs(names)  # the section's own knob-keyed fields
         if not isinstance(m, EpicsMachineConfig):  # a simulated machine
             if self.objective.pv is not None:
                 raise ValueError("objective.pv is for the epics machine; the sim reads its model")
@@ -368,15 +367,6 @@ class RunConfig(_Section):
         """Keep ``prior``, the :class:`~pigp_torch.prior.PhysicsPrior` read from :attr:`prior`
         (the run layer reads and checks the file; this module does no I/O)."""
         self._prior = prior
-
-
-def _same_knobs(key: str, mapping: dict, names: list[str], what: str = "missing knobs") -> None:
-    missing = [n for n in names if n not in mapping]
-    extra = [k for k in mapping if k not in names]
-    if missing:
-        raise ValueError(f"{key}: {what} {missing}")
-    if extra:
-        raise ValueError(f"{key}: {extra} are not configured knobs")
 
 
 def logged_units(header: dict) -> tuple[str, str]:

@@ -1,6 +1,6 @@
-r"""The ``machine`` section of a run file, chosen by its ``kind``: the loop's own sections
-(``sim``: the simulated ring, ``epics``: a machine over EPICS) and the section of every machine
-kind of :data:`pigp_torch.machines.KINDS` that has a simulated machine (``ares-sim``).
+r"""The ``machine`` section of a run file, chosen by its ``kind``: the loop's own section
+(``epics``: a machine over EPICS) and the section of every machine kind of
+:data:`pigp_torch.machines.KINDS` that has a simulated machine (``ares-sim``, ``sim``: the ring).
 """
 
 from __future__ import annotations
@@ -9,17 +9,18 @@ from typing import Annotated, Union
 
 from pydantic import Field
 
-from pigp_torch.loop.config.machines import EpicsMachineConfig, SimMachineConfig
+from pigp_torch.loop.config.machines import EpicsMachineConfig
 from pigp_torch.machines import KINDS
 
 
 def machine_sections() -> dict[str, type]:
-    """``machine.kind -> section class``: ``sim``, ``epics`` and each machine kind's own."""
-    sections: dict[str, type] = {"sim": SimMachineConfig, "epics": EpicsMachineConfig}
+    """``machine.kind -> section class``: each machine kind's own (registry order), then
+    ``epics``."""
+    sections: dict[str, type] = {}
     for kind in KINDS.values():
         if kind.run_file_kind is not None and kind.run_file_kind not in sections:
             sections[kind.run_file_kind] = kind.section()
-    return sections
+    return {**sections, "epics": EpicsMachineConfig}
 
 
 #: ``machine.kind -> section class`` (:func:`machine_sections`, found once at import).

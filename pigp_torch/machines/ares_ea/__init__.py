@@ -73,6 +73,17 @@ class AresKind(MachineKind):
 
         return build_ares_machine(config)
 
+    def describe(self, config, machine) -> str:
+        """The simulated linac: its trial, trials file, wrong-model case, screen noise (µm),
+        noise seed and the objective its machine returns."""
+        m = config.machine
+        where = "the shipped trials" if m.trials is None else str(m.trials)
+        return (
+            f"simulated ARES-EA linac (trial {m.trial} of {where}, model error {m.model_error}, "
+            f"screen noise {1e6 * m.noise:g} µm, noise seed {m.seed}; objective "
+            f"{machine.objective})"
+        )
+
     def true_objective(self, config, say):
         """The simulated linac's objective of the true beam (the machine's noise-free
         observables); no optimum search, and the report keeps its noise."""

@@ -10,15 +10,18 @@ Everything ring-specific is in this folder:
   (:mod:`.calibration`), any ring (:class:`.ring.RingCoupling`) and SPEAR3 in amps
   (:class:`.spear3.Spear3Coupling`), a ring as plain data (:class:`.spec.RingSpec`), the error
   ensemble of optima (:mod:`.ensemble`) and the model's throughput (:mod:`.throughput`);
-  :mod:`pigp_torch.simulation` keeps the old import paths as aliases;
 * the ring as a :class:`~pigp_torch.prior.machine_model.MachineModel` (:mod:`.model`), its drift
-  families (:mod:`.drift`), and the plug-in :data:`KIND` that :data:`pigp_torch.machines.KINDS`
-  lists as ``"spear3"``.
+  families (:mod:`.drift`);
+* its run-file section ``machine: {kind: sim}`` (:class:`.section.SimMachineConfig`) and the
+  simulated machine built from it (:mod:`.run`);
+* its benchmark, the "spear3-13" protocol, and ``pigp demo`` (:mod:`.bench`), its simulated EPICS
+  servers (:mod:`.simulated_epics`), and its commands (:mod:`.commands`: ``pigp compare``,
+  ``pigp bench spear3``, ``demo``, ``serve-sim``, ``generate-data``, ``bench simulator``);
+* the plug-in :data:`KIND` that :data:`pigp_torch.machines.KINDS` lists as ``"spear3"``.
 
-Its run-file section is ``machine: {kind: sim}``
-(:class:`~pigp_torch.loop.config.SimMachineConfig`), its benchmark the "spear3-13" protocol
-(:func:`pigp_torch.bench.run_benchmark`). This module imports nothing heavy (the registry
-imports it to find the kind).
+The old import paths (``pigp_torch.simulation``, ``pigp_torch.bench``, ``pigp_torch.benchmark``,
+``pigp_torch.simulated_epics``, ``pigp_torch.testing``) are aliases of these modules. This module
+imports nothing heavy (the registry imports it to find the kind).
 """
 
 from __future__ import annotations
@@ -60,7 +63,7 @@ class RingKind(MachineKind):
         return ring_machine_model(sim, coupling_half_width)
 
     def section(self) -> type:
-        from pigp_torch.loop.config.machines import SimMachineConfig
+        from pigp_torch.machines.ring.section import SimMachineConfig
 
         return SimMachineConfig
 
@@ -69,6 +72,19 @@ class RingKind(MachineKind):
         from pigp_torch.machines.ring.run import build_ring_machine
 
         return build_ring_machine(config)
+
+    def describe(self, config, machine) -> str:
+        """The simulated ring: its deck or lattice file, error seed, loss-rate map, reading noise
+        (the run's objective unit) and noise seed."""
+        from pigp_torch._utils.units import display_unit
+
+        m, (k, unit) = config.machine, display_unit(config.objective_unit)
+        ring = f"SPEAR3 {m.optics}" if m.lattice is None else f"lattice {m.lattice}"
+        maps = {"model": "the ring's loss-rate map", "benchmark": "the benchmark's loss-rate map"}
+        return (
+            f"simulated ring ({ring}, error seed {m.error_seed} with {maps[m.loss_map]}, noise "
+            f"{k * m.noise:g} {unit}, noise seed {m.seed})"
+        )
 
     def true_objective(self, config, say):
         """The simulated ring's noise-free loss rate (mA/min) and its noise; the report searches
@@ -90,10 +106,22 @@ class RingKind(MachineKind):
         return section.noise if section.noise > 0 else None
 
     def benchmark(self, **options: Any):
-        """The "spear3-13" benchmark (:func:`pigp_torch.bench.run_benchmark`)."""
-        from pigp_torch.bench import run_benchmark
+        """The "spear3-13" benchmark (:func:`.bench.run_benchmark`)."""
+        from pigp_torch.machines.ring.bench import run_benchmark
 
         return run_benchmark(**options)
+
+    def register_commands(self, sub) -> None:
+        """``pigp generate-data``, ``compare``, ``demo``, ``serve-sim`` (:mod:`.commands`)."""
+        from pigp_torch.machines.ring.commands import register_commands
+
+        register_commands(sub)
+
+    def register_bench(self, bench) -> None:
+        """``pigp bench simulator`` and ``pigp bench spear3`` (the same as ``pigp compare``)."""
+        from pigp_torch.machines.ring.commands import register_bench
+
+        register_bench(bench)
 
     def drift_families(self) -> dict[str, frozenset[str]]:
         """:data:`.drift.RING_FAMILIES`."""

@@ -1,6 +1,6 @@
 r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
 
-* Machine ``s``: ``ring.build(s)`` (a :class:`~pigp_torch.simulation.spec.RingSpec`; default the
+* Machine ``s``: ``ring.build(s)`` (a :class:`~pigp_torch.machines.ring.spec.RingSpec`; default the
   SPEAR3 user-mode ring with the 13 knobs of the study, in amps) read through a
   :class:`~pigp_torch.machine.SimulatedMachine` with i.i.d. :math:`\mathcal N(0, 0.04^2)` noise;
   every run starts at all skews zero. Each machine has its own loss-rate map, drawn from its seed
@@ -10,14 +10,14 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
   them; no lattice model knows them). ``machine_maps=False`` gives every machine the model's.
   This is the ``"project"`` family of machines (the default); ``family="wide"`` draws machines
   that vary as much as real rings (tunes, error scale, peak and background per machine;
-  :mod:`~pigp_torch.bench.families`). Every run table carries a ``family`` column.
+  :mod:`~.families`). Every run table carries a ``family`` column.
 * Model: the physics prior is computed ONCE from a different ring, ``error_seed = model_seed``,
   with :func:`~pigp_torch.prior.prior_from_model` (the model does not know the machine's errors),
   with the same knob set as the machines (``knobs="paper13"``: the 13 windings of the paper;
   ``"all72"``: every skew winding of the ring).
 * Score: the noise-free loss rate :math:`f` at every evaluated setting, the start value
   :math:`f_0 = f(0)`, the machine's true optimum :math:`f^*` (multi-start gradient search on the
-  differentiable model, :meth:`~pigp_torch.simulation.Spear3Coupling.optimum`), and the gain
+  differentiable model, :meth:`~..spear3.Spear3Coupling.optimum`), and the gain
   fraction of the best setting evaluated so far,
 
   .. math:: g_n = \frac{\max_{k \le n} f(x_k) - f_0}{f^* - f_0}.
@@ -25,7 +25,7 @@ r"""The "spear3-13" benchmark protocol: runs methods on simulated machines.
 Seeds. The machine's noise stream is seeded by the machine seed alone (common random numbers:
 every method sees the same noise sequence on a machine); the optimizer (and, for ML-II, the
 archive) by a stable hash of ``(method name, machine seed)``. Runs are independent, so a process
-pool, or a Dask cluster (:mod:`~pigp_torch.bench.distributed`), gives the same table as a
+pool, or a Dask cluster (:mod:`~.distributed`), gives the same table as a
 serial loop.
 """
 
@@ -39,23 +39,23 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE, default_dtype
-from pigp_torch.bench.archive import machine_archive
-from pigp_torch.bench.distributed import check_scheduler, run_jobs
-from pigp_torch.bench.families import check_machines
-from pigp_torch.bench.machines import (
+from pigp_torch.loop import optimize
+from pigp_torch.machine import SimulatedMachine
+from pigp_torch.machines.ring.bench.archive import machine_archive
+from pigp_torch.machines.ring.bench.distributed import check_scheduler, run_jobs
+from pigp_torch.machines.ring.bench.families import check_machines
+from pigp_torch.machines.ring.bench.machines import (
     _maps_key,
     benchmark_ring,
     machine_optimum,
 )
-from pigp_torch.bench.scoring import score_run
-from pigp_torch.loop import optimize
-from pigp_torch.machine import SimulatedMachine
+from pigp_torch.machines.ring.bench.scoring import score_run
+from pigp_torch.machines.ring.calibration import MAP_SPREAD, machine_loss_map  # noqa: F401
+from pigp_torch.machines.ring.ensemble import ensemble_optima, ensemble_seeds
+from pigp_torch.machines.ring.ring import RingCoupling
+from pigp_torch.machines.ring.spec import RingSpec, as_ring_spec
 from pigp_torch.methods import DEFAULT_BUDGETS, MethodSpec, RunContext, resolve_methods
 from pigp_torch.prior import PhysicsPrior, prior_from_model
-from pigp_torch.simulation.calibration import MAP_SPREAD, machine_loss_map  # noqa: F401
-from pigp_torch.simulation.ensemble import ensemble_optima, ensemble_seeds
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spec import RingSpec, as_ring_spec
 
 #: Measurement noise of the protocol (mA/min, the paper's SPEAR3 value).
 NOISE = 0.04
@@ -99,12 +99,12 @@ def model_prior(
 
     With ``center_ensemble = n > 0`` it also carries ``center_cov``, the covariance of the
     optimum, and ``peak_shape``, the mean shape of the peak, over ``n`` more model rings with
-    error seeds :data:`~pigp_torch.simulation.ensemble.ENSEMBLE_SEED0` ... + n - 1
-    (:func:`~pigp_torch.simulation.ensemble.ensemble_optima`, one optimum search a ring;
+    error seeds :data:`~pigp_torch.machines.ring.ensemble.ENSEMBLE_SEED0` ... + n - 1
+    (:func:`~pigp_torch.machines.ring.ensemble.ensemble_optima`, one optimum search a ring;
     ``progress`` prints one line a ring). :data:`ENSEMBLE_SIZE` is the protocol's choice.
 
     ``model``: a model ring built elsewhere (e.g. re-tuned, see
-    :mod:`~pigp_torch.bench.mismatch`) instead of ``ring.build(model_seed)``; its ensemble
+    :mod:`~.mismatch`) instead of ``ring.build(model_seed)``; its ensemble
     rings are its own lattice with the ensemble's error seeds.
     """
     if model is None:
@@ -166,7 +166,7 @@ def run_one(
 
     The machine has its own loss-rate map (:func:`machine_loss_map`) unless ``machine_maps`` is
     false; the prior always has the model's. ``family``: ``"project"`` (default) or ``"wide"``
-    (:func:`~pigp_torch.bench.machines.benchmark_ring`).
+    (:func:`~.machines.benchmark_ring`).
 
     ``optimum_starts=0`` skips the search for :math:`f^*` (``f_star``, ``gain_fraction`` NaN).
     The run executes with torch's default dtype set to float64 (the caller's is restored): BoTorch
@@ -266,10 +266,10 @@ def run_benchmark(
             ``"all72"`` or winding names); overrides ``ring``'s.
         scheduler: ``None`` (default): run here, serially or on ``n_workers`` processes; a Dask
             scheduler address (``"tcp://host:8786"``) or ``"local"`` (a ``LocalCluster`` on
-            127.0.0.1): one Dask task per run (:mod:`~pigp_torch.bench.distributed`).
+            127.0.0.1): one Dask task per run (:mod:`~.distributed`).
         center_ensemble: when the prior is computed here, the number of further model rings
             whose optima give its ``center_cov`` (:func:`model_prior`; 0: none).
-        ring: the simulated ring (:class:`~pigp_torch.simulation.spec.RingSpec`; default the
+        ring: the simulated ring (:class:`~pigp_torch.machines.ring.spec.RingSpec`; default the
             SPEAR3 user-mode ring, 13 knobs in amps).
         machine_maps: ``True`` (default): each machine its own loss-rate map
             (:func:`machine_loss_map`); ``False``: the model's constants; ``(a, b)``: the
@@ -308,7 +308,7 @@ def run_benchmark(
 
 def _run_all(specs, seeds, prior, budgets, shared, scheduler, n_workers, progress):
     """One job per (method, machine seed), run by
-    :func:`~pigp_torch.bench.distributed.run_jobs`; their tables, concatenated in job order
+    :func:`~.distributed.run_jobs`; their tables, concatenated in job order
     with ``method, machine_seed, step`` first."""
     jobs = [
         (spec, seed, prior, {"budget": int(budgets[spec.budget]), **shared})

@@ -5,11 +5,14 @@ from __future__ import annotations
 import json
 import sys
 
-from pigp_torch.commands.ring_options import add_machine_arguments, simulator_from_args
+from pigp_torch.machines.ring.commands.ring_options import (
+    add_machine_arguments,
+    simulator_from_args,
+)
 
 
 def cmd_bench_simulator(args) -> int:
-    from pigp_torch.simulation.throughput import measure_throughput
+    from pigp_torch.machines.ring.throughput import measure_throughput
 
     sim = simulator_from_args(args)
     res = measure_throughput(

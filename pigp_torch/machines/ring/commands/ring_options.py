@@ -1,7 +1,7 @@
 r"""Command-line options that choose the simulated ring and its knobs: an adapter from options to
-a :class:`~pigp_torch.simulation.spec.RingSpec` (the one description of a simulated ring; a run
+a :class:`~pigp_torch.machines.ring.spec.RingSpec` (the one description of a simulated ring; a run
 file's ``machine`` section gives its own with
-:meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec`).
+:meth:`~..section.SimMachineConfig.ring_spec`).
 
 Used by ``pigp generate-data``, ``compare``, ``serve-sim`` and ``bench simulator``. Light: the
 parser is built without heavy imports (``pigp --help`` answers at once).
@@ -59,13 +59,13 @@ def _names(text: str):
 
 
 def ring_spec_from_args(args):
-    """The :class:`~pigp_torch.simulation.spec.RingSpec` of the options of
+    """The :class:`~pigp_torch.machines.ring.spec.RingSpec` of the options of
     :func:`add_ring_arguments`.
 
     Raises:
         ValueError: inconsistent options (e.g. ``--lattice`` without knob names or calibration).
     """
-    from pigp_torch.simulation.spec import RingSpec
+    from pigp_torch.machines.ring.spec import RingSpec
 
     knobs = _names(args.knobs)
     calibration = None

@@ -5,7 +5,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from pigp_torch.commands.ring_options import add_machine_arguments, simulator_from_args
+from pigp_torch.machines.ring.commands.ring_options import (
+    add_machine_arguments,
+    simulator_from_args,
+)
 
 
 def cmd_generate_data(args) -> int:

@@ -1,7 +1,7 @@
 r"""The ``pigp demo`` pipeline: the main job end to end on the embedded simulated ring.
 
 Simulated data of a model ring -> surrogate -> physics prior (cached between runs,
-:mod:`~pigp_torch.bench.demo_cache`) -> the prior's error ensemble for the methods that use
+:mod:`~.demo_cache`) -> the prior's error ensemble for the methods that use
 it -> each method on a simulated machine with another error seed, scored as in the benchmark.
 """
 
@@ -20,18 +20,16 @@ from pigp_torch._utils.pool import (
     one_torch_thread,
     spread,
 )
-from pigp_torch.bench.demo_cache import (
+from pigp_torch.data.sampling import generate_dataset
+from pigp_torch.loop.progress import reporting_spec
+from pigp_torch.machines.ring.bench.demo_cache import (
     DemoCache,
     apply_cached_ensemble,
     default_cache_dir,
     ensemble_key,
 )
-from pigp_torch.bench.protocol import machine_loss_map, run_one
-from pigp_torch.data.sampling import generate_dataset
-from pigp_torch.loop.progress import reporting_spec
-from pigp_torch.methods import METHODS
-from pigp_torch.prior import prior_from_model
-from pigp_torch.simulation.ensemble import (
+from pigp_torch.machines.ring.bench.protocol import machine_loss_map, run_one
+from pigp_torch.machines.ring.ensemble import (
     ENSEMBLE_SEED0,
     check_ensemble_size,
     ensemble_plan,
@@ -39,8 +37,10 @@ from pigp_torch.simulation.ensemble import (
     ring_optima,
     with_center_ensemble,
 )
-from pigp_torch.simulation.spear3 import knob_names_for
-from pigp_torch.simulation.spec import SPEAR3
+from pigp_torch.machines.ring.spear3 import knob_names_for
+from pigp_torch.machines.ring.spec import SPEAR3
+from pigp_torch.methods import METHODS
+from pigp_torch.prior import prior_from_model
 from pigp_torch.surrogate import SurrogateEnsemble, train_surrogate
 from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
@@ -87,7 +87,7 @@ def print_reports(reports) -> None:
 
 def run_demo(a: DemoSettings) -> tuple[pd.DataFrame, object]:
     r"""Run the demo pipeline, printing its stages; returns the scored runs of every method (one
-    table, :func:`~pigp_torch.bench.run_one`'s columns) and the physics prior used.
+    table, :func:`~.run_one`'s columns) and the physics prior used.
 
     It runs on one torch thread (restored afterwards), as the benchmark's runs do: a GP step is
     many small linear-algebra calls, and two OpenMP threads on a busy two-core machine spend

@@ -1,7 +1,7 @@
 """The PVs of the simulated ring IOC as a class: :func:`sim_ioc_class` adds one setpoint and one
 readback PV per knob, the loss rate and the switches (the table in
-:mod:`~pigp_torch.simulated_epics.ioc_pvs`) to
-:class:`~pigp_torch.simulated_epics.ioc_pvs.SimRingIOC`."""
+:mod:`~.ioc_pvs`) to
+:class:`~.ioc_pvs.SimRingIOC`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from caproto.server import pvproperty
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
-from pigp_torch.simulated_epics import (
+from pigp_torch.machines.ring.simulated_epics import (
     ALARM_KNOB_SUFFIX,
     ALARM_READINGS_SUFFIX,
     ALARM_SEVERITY_SUFFIX,
@@ -34,7 +34,7 @@ from pigp_torch.simulated_epics import (
     STALL_PUTS_SUFFIX,
     STUCK_KNOB_SUFFIX,
 )
-from pigp_torch.simulated_epics.ioc_pvs import SimRingIOC
+from pigp_torch.machines.ring.simulated_epics.ioc_pvs import SimRingIOC
 
 
 async def _put_alarm_knob(group, instance, value):
@@ -83,6 +83,17 @@ def sim_ioc_class(
     if int(nan_readings) < 0:
         raise ValueError(f"nan_readings must be >= 0, got {nan_readings}")
     attrs: dict = {"knob_names": tuple(names), "__module__": __name__}
+    _add_knobs(attrs, names, bounds, x0, (setpoint_suffix, readback_suffix), str(units))
+    attrs["loss_rate"] = _loss_rate(prefix)
+    _add_switches(attrs, prefix, len(names), float(readback_delay), int(nan_readings), str(units))
+    _add_alarm_switches(attrs, prefix, len(names))
+    return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
+
+
+def _add_knobs(attrs: dict, names, bounds, x0, suffixes: tuple[str, str], units: str) -> None:
+    """One setpoint (control limits ``bounds``, put through ``_on_setpoint``) and one read-only
+    readback PV (its own alarm) per knob, starting at ``x0``."""
+    setpoint_suffix, readback_suffix = suffixes
     for i, name in enumerate(names):
         lo, hi = float(bounds[0, i]), float(bounds[1, i])
         setpoint = pvproperty(
@@ -112,6 +123,9 @@ def sim_ioc_class(
             doc=f"readback of {name} ({units})",
         )
 
+
+def _loss_rate(prefix: str):
+    """The loss-rate PV (mA/min): read through ``_on_read``; its startup starts the refreshes."""
     loss_rate = pvproperty(
         value=float("nan"),
         name=f"{prefix}{LOSS_RATE_SUFFIX}",
@@ -133,7 +147,12 @@ def sim_ioc_class(
 
     loss_rate.startup(start_refresh)
     loss_rate.getter(get_loss_rate)
-    attrs["loss_rate"] = loss_rate
+    return loss_rate
+
+
+def _add_switches(attrs: dict, prefix: str, d: int, readback_delay, nan_readings, units) -> None:
+    """The fault-injection switches of the module table of :mod:`~.ioc_pvs` but the severity
+    hooks (``d`` knobs; the initial ``readback_delay`` in s and ``nan_readings``)."""
     attrs["readback_delay"] = pvproperty(
         value=float(readback_delay),
         name=f"{prefix}{READBACK_DELAY_SUFFIX}",
@@ -152,9 +171,9 @@ def sim_ioc_class(
          "fault injection (tests): reboot (knobs to power-on values) at the N-th read"),
         ("glitch_readings", GLITCH_READINGS_SUFFIX, 0, 1_000_000,
          "fault injection: the next N reads of the loss rate return GlitchValue"),
-        ("stuck_knob", STUCK_KNOB_SUFFIX, 0, len(names),
+        ("stuck_knob", STUCK_KNOB_SUFFIX, 0, d,
          "fault injection: k >= 1 freezes the readback of knob k (1-based); 0 releases it"),
-        ("narrow_knob", NARROW_KNOB_SUFFIX, 0, len(names),
+        ("narrow_knob", NARROW_KNOB_SUFFIX, 0, d,
          "fault injection: the knob (1-based) NarrowLimit narrows; 0: every knob"),
     )  # fmt: skip
     for attr, suffix, value, upper, doc in switches:
@@ -206,12 +225,10 @@ def sim_ioc_class(
 
         prop.putter(put_hook)
         attrs[attr] = prop
-    _add_alarm_switches(attrs, prefix, len(names))
-    return type("SimRingIOCWithKnobs", (SimRingIOC,), attrs)
 
 
 def _add_alarm_switches(attrs: dict, prefix: str, d: int) -> None:
-    """The severity hooks (module table of :mod:`~pigp_torch.simulated_epics.ioc_pvs`): the severity
+    """The severity hooks (module table of :mod:`~.ioc_pvs`): the severity
     served, on how many loss-rate reads (-1: every one), on which knob's readback."""
     alarms = (
         ("alarm_severity", ALARM_SEVERITY_SUFFIX, 3, 0, 3,

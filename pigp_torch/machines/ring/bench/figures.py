@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from pigp_torch.bench.scoring import RUN_KEYS
+from pigp_torch.machines.ring.bench.scoring import RUN_KEYS
 
 Y_LABELS = {
     "best_f_true": "best noise-free loss rate so far (mA/min)",
@@ -55,7 +55,7 @@ def plot_runs(df: pd.DataFrame, path, *, y: str = "best_f_true", title: str | No
     """Fig. 2b style: every run thin, the mean per method thick; saved to ``path``.
 
     Args:
-        df: table of :func:`~pigp_torch.bench.run_benchmark`.
+        df: table of :func:`~.run_benchmark`.
         path: output file (format from the suffix, e.g. ``.png``/``.pdf``).
         y: ``"best_f_true"`` (default) or ``"gain_fraction"``.
         title: optional axes title.

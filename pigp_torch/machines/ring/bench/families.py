@@ -2,15 +2,15 @@ r"""Families of benchmark machines: which SPEAR3 rings the spear3-13 protocol dr
 
 * ``"project"`` (default): machine ``s`` is the user deck sp3v82 with the coupling errors of
   seed ``s``, their scale calibrated to skews-off :math:`\epsilon_y/\epsilon_x` = 0.71 %, and its
-  own loss-rate map around the model's (:func:`~pigp_torch.simulation.calibration
-  .machine_loss_map`). Built by :func:`~pigp_torch.bench.machines.benchmark_ring`.
+  own loss-rate map around the model's (:func:`~pigp_torch.machines.ring.calibration
+  .machine_loss_map`). Built by :func:`~.machines.benchmark_ring`.
 * ``"wide"``: machines that vary as much as real rings do. Machine ``s`` draws, from a numpy
   generator seeded by ``(s, WIDE_STREAM)`` (the same machine in every method and process), in
   this order:
 
   - tune offsets :math:`\Delta\nu_x, \Delta\nu_y \sim U[-0.02, 0.02]` (independent); the ideal
     deck is re-tuned by them with the QF and QD families
-    (:func:`~pigp_torch.bench.mismatch.retuned_lattice`), then the errors of seed ``s`` are
+    (:func:`~.mismatch.retuned_lattice`), then the errors of seed ``s`` are
     applied;
   - the global error scale :math:`s_e \sim U[` :data:`ERROR_SCALE_RANGE` :math:`]` (the least
     and largest calibrated scale of the 40 ensemble rings; dimensionless, 1 = nominal rms
@@ -20,7 +20,7 @@ r"""Families of benchmark machines: which SPEAR3 rings the spear3-13 protocol dr
     :math:`f = f_\infty + g\,\langle 1/(\sigma_x\sigma_y)\rangle` with
     :math:`g = (f^* - f_\infty)/p^*` (mA/min m²), :math:`p^*` the largest
     :math:`\langle 1/(\sigma_x\sigma_y)\rangle` in the knob box
-    (:func:`~pigp_torch.simulation.calibration.peak_density`), so the machine's optimum is
+    (:func:`~pigp_torch.machines.ring.calibration.peak_density`), so the machine's optimum is
     :math:`f^*` (up to the search) and its background :math:`f_\infty`.
 
   The wide family exists for the SPEAR3 user deck only (any SPEAR3 knob set), and it draws its
@@ -37,8 +37,8 @@ import dataclasses
 
 import numpy as np
 
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spec import RingSpec
+from pigp_torch.machines.ring.ring import RingCoupling
+from pigp_torch.machines.ring.spec import RingSpec
 
 #: the machine families of the benchmark
 FAMILIES = ("project", "wide")
@@ -134,8 +134,8 @@ def wide_machine(machine_seed: int, ring: RingSpec) -> RingCoupling:
     Raises:
         ValueError: ``ring`` is not the SPEAR3 user deck.
     """
-    from pigp_torch.bench.mismatch import retuned_lattice
-    from pigp_torch.simulation.calibration import peak_density
+    from pigp_torch.machines.ring.bench.mismatch import retuned_lattice
+    from pigp_torch.machines.ring.calibration import peak_density
 
     check_wide_ring(ring)
     key = (int(machine_seed), ring)
@@ -150,7 +150,7 @@ def wide_machine(machine_seed: int, ring: RingSpec) -> RingCoupling:
 
 def _build(lattice, ring: RingSpec, draw: WideDraw, loss_rate_map) -> RingCoupling:
     """The machine of ``draw`` on the re-tuned ``lattice`` with ``ring``'s knobs."""
-    from pigp_torch.simulation.spear3 import knob_calibration_for, knob_names_for
+    from pigp_torch.machines.ring.spear3 import knob_calibration_for, knob_names_for
 
     names = knob_names_for(ring.knobs, ring.optics)
     sim = RingCoupling(lattice, names, knob_calibration_for(names, ring.optics),

@@ -24,7 +24,7 @@ import pandas as pd
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.simulation.ring import RingCoupling
+from pigp_torch.machines.ring.ring import RingCoupling
 
 RUN_KEYS = ["method", "machine_seed"]
 _NEEDED = ("method", "machine_seed", "step", "f_true", "f0", "f_star", "gain_fraction")
@@ -50,7 +50,7 @@ def run_scores(
     ``at``, final best.
 
     Args:
-        df: table of :func:`~pigp_torch.bench.run_benchmark` (or with its score columns).
+        df: table of :func:`~.run_benchmark` (or with its score columns).
         fraction: :math:`p` of steps-to-:math:`p`, in (0, 1].
         at: evaluation counts for ``gain_<n>`` columns.
         noise: :math:`\sigma_n` of the steps-to-within criterion (mA/min).

@@ -1,6 +1,6 @@
 r"""The simulated ring served over EPICS 7 pvAccess (a ``p4p`` server on 127.0.0.1).
 
-The pvAccess twin of :mod:`pigp_torch.simulated_epics.ioc`, for tests and demos of
+The pvAccess twin of :mod:`pigp_torch.machines.ring.simulated_epics.ioc`, for tests and demos of
 :class:`~pigp_torch.machine.pva.PvaMachine`: the same PV names, all ``NTScalar`` doubles (the
 switches too):
 
@@ -43,7 +43,7 @@ import torch
 
 from pigp_torch._utils import DTYPE, check_bounds
 from pigp_torch.machine.base import check_setting
-from pigp_torch.simulated_epics import (
+from pigp_torch.machines.ring.simulated_epics import (
     ALARM_KNOB_SUFFIX,
     ALARM_SEVERITY_SUFFIX,
     DEFAULT_PREFIX,
@@ -60,9 +60,9 @@ ALARM_POSTS_SUFFIX = "Sim:AlarmPosts"
 
 
 def free_udp_tcp_ports(n: int = 2, attempts: int = 50) -> list[int]:
-    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~pigp_torch.simulated_epics.
+    """``n`` distinct ports free for TCP and UDP on 127.0.0.1 (:func:`~.
     free_ports`)."""
-    from pigp_torch.simulated_epics import free_ports
+    from pigp_torch.machines.ring.simulated_epics import free_ports
 
     return free_ports(n, attempts)
 
@@ -296,7 +296,7 @@ def start_sim_pva(
     """Serve the SPEAR3 ring ``RingSpec(knobs=knobs).build(seed)`` over pvAccess on 127.0.0.1
     in this process (threads) for the block; yields ``(server, client_conf)``."""
     from pigp_torch.machine import SimulatedMachine
-    from pigp_torch.simulation.spec import as_ring_spec
+    from pigp_torch.machines.ring.spec import as_ring_spec
 
     sim = as_ring_spec(None, knobs=knobs).build(int(seed))
     machine = SimulatedMachine(sim, noise=noise, seed=noise_seed)

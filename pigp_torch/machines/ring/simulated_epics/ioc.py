@@ -1,10 +1,10 @@
 r"""A simulated ring (SPEAR3 by default) served over EPICS Channel Access (a caproto IOC): building
 the IOC (:func:`make_sim_ioc`), serving it (:func:`serve`, ``pigp serve-sim``, ``python -m
-pigp_torch.simulated_epics.ioc``).
+pigp_torch.machines.ring.simulated_epics.ioc``).
 
-The PVs and their meaning: :mod:`~pigp_torch.simulated_epics.ioc_pvs`; the environment:
-:mod:`~pigp_torch.simulated_epics.ca_env`; the subprocess launcher for tests:
-:mod:`~pigp_torch.simulated_epics.ioc_process`.
+The PVs and their meaning: :mod:`~.ioc_pvs`; the environment:
+:mod:`~.ca_env`; the subprocess launcher for tests:
+:mod:`~.ioc_process`.
 """
 
 from __future__ import annotations
@@ -16,22 +16,22 @@ import sys
 
 import torch
 
-from pigp_torch.simulated_epics import (
+from pigp_torch.machines.ring.simulated_epics import (
     DEFAULT_PREFIX,
     LOOPBACK,
     SIM_CA_PORT,
     add_ioc_arguments,
 )
-from pigp_torch.simulated_epics.ca_env import (
+from pigp_torch.machines.ring.simulated_epics.ca_env import (
     READY_MESSAGE,
     client_environment,
     free_port,
     patched_environ,
     server_environment,
 )
-from pigp_torch.simulated_epics.ioc_class import sim_ioc_class
-from pigp_torch.simulated_epics.ioc_process import SimIOCProcess, start_sim_ioc
-from pigp_torch.simulated_epics.ioc_pvs import SimRingIOC
+from pigp_torch.machines.ring.simulated_epics.ioc_class import sim_ioc_class
+from pigp_torch.machines.ring.simulated_epics.ioc_process import SimIOCProcess, start_sim_ioc
+from pigp_torch.machines.ring.simulated_epics.ioc_pvs import SimRingIOC
 
 __all__ = [
     "READY_MESSAGE",
@@ -69,7 +69,7 @@ def make_sim_ioc(
     Args:
         seed: error seed of the simulated ring.
         knobs: knob set or names (overrides ``ring``'s).
-        ring: a :class:`~pigp_torch.simulation.spec.RingSpec` (default: SPEAR3, 13 knobs, A).
+        ring: a :class:`~pigp_torch.machines.ring.spec.RingSpec` (default: SPEAR3, 13 knobs, A).
         noise: loss-rate noise standard deviation (mA/min); ``noise_seed`` seeds it.
         prefix: prefix of the loss-rate and switch PVs.
         update_period: see :class:`SimRingIOC`.
@@ -77,7 +77,7 @@ def make_sim_ioc(
         put_log: file receiving every accepted setpoint put (see :class:`SimRingIOC`).
     """
     from pigp_torch.machine import SimulatedMachine
-    from pigp_torch.simulation.spec import as_ring_spec
+    from pigp_torch.machines.ring.spec import as_ring_spec
 
     # cheap checks before the ring is built (seconds)
     if not (0.0 <= float(noise) < math.inf):
@@ -141,9 +141,10 @@ def serve(ioc: SimRingIOC, port: int = SIM_CA_PORT, *, log_pv_names: bool = True
 
 
 def sim_ioc_from_args(args, ring=None):
-    """The IOC described by the options of :func:`pigp_torch.simulated_epics.add_ioc_arguments`
-    and the ring ``ring`` (a :class:`~pigp_torch.simulation.spec.RingSpec` or its
-    :meth:`~pigp_torch.simulation.spec.RingSpec.to_dict` form; default: ``args.ring``, that form
+    """The IOC described by the options of
+    :func:`pigp_torch.machines.ring.simulated_epics.add_ioc_arguments`
+    and the ring ``ring`` (a :class:`~pigp_torch.machines.ring.spec.RingSpec` or its
+    :meth:`~pigp_torch.machines.ring.spec.RingSpec.to_dict` form; default: ``args.ring``, that form
     as JSON text, else SPEAR3 with the 13 knobs of the study)."""
     import json
 
@@ -162,13 +163,13 @@ def sim_ioc_from_args(args, ring=None):
 
 
 def main(argv=None) -> int:
-    """``python -m pigp_torch.simulated_epics.ioc``: serve the simulated ring (options as
-    ``serve-sim``)."""
+    """``python -m pigp_torch.machines.ring.simulated_epics.ioc``: serve the simulated ring
+    (options as ``serve-sim``)."""
     import argparse
 
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(
-        prog="python -m pigp_torch.simulated_epics.ioc",
+        prog="python -m pigp_torch.machines.ring.simulated_epics.ioc",
         description="Serve a simulated ring (SPEAR3 by default) over EPICS Channel Access on "
         "127.0.0.1.",
     )

@@ -1,10 +1,11 @@
-"""``pigp compare``: benchmark optimizers on simulated machines (the spear3-13 protocol)."""
+"""``pigp compare`` and ``pigp bench spear3`` (one command, two names): benchmark optimizers on
+simulated rings (the spear3-13 protocol, :func:`pigp_torch.machines.ring.bench.run_benchmark`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from pigp_torch.commands.ring_options import add_ring_arguments
+from pigp_torch.machines.ring.commands.ring_options import add_ring_arguments
 
 
 def seed_list(text: str) -> list[int]:
@@ -24,7 +25,7 @@ def format_summary(summary, fraction: int = 95) -> str:
     interquartile range of the steps; every column of ``summary.csv`` is in the file).
 
     Args:
-        summary: :func:`~pigp_torch.bench.summarize`'s table (indexed by method).
+        summary: :func:`~pigp_torch.machines.ring.bench.summarize`'s table (indexed by method).
         fraction: the gain fraction of its ``steps_to_<fraction>`` column.
     """
     import math
@@ -70,8 +71,8 @@ def format_summary(summary, fraction: int = 95) -> str:
 def write_comparison(df, out: Path, title: str, knob_units: dict[str, str]) -> None:
     """``runs.csv`` and ``summary.csv`` (headers with units, ``name [unit]``; ``knob_units``:
     knob name -> unit), the figures and the printed summary of a benchmark table ``df``."""
-    from pigp_torch.bench import plot_prior_mean, plot_runs, summarize
     from pigp_torch.data.tables import with_units
+    from pigp_torch.machines.ring.bench import plot_prior_mean, plot_runs, summarize
 
     out.mkdir(parents=True, exist_ok=True)
     with_units(df, knob_units).to_csv(out / "runs.csv", index=False)
@@ -87,10 +88,10 @@ def write_comparison(df, out: Path, title: str, knob_units: dict[str, str]) -> N
 
 
 def cmd_compare(args) -> int:
-    from pigp_torch.bench import run_benchmark
-    from pigp_torch.commands.ring_options import ring_spec_from_args
-    from pigp_torch.simulation.ensemble import check_ensemble_size
-    from pigp_torch.simulation.spec import knob_count
+    from pigp_torch.machines.ring.bench import run_benchmark
+    from pigp_torch.machines.ring.commands.ring_options import ring_spec_from_args
+    from pigp_torch.machines.ring.ensemble import check_ensemble_size
+    from pigp_torch.machines.ring.spec import knob_count
 
     ring = ring_spec_from_args(args)
     check_ensemble_size(args.center_ensemble, knob_count(ring))  # before any ring is computed
@@ -118,15 +119,30 @@ def cmd_compare(args) -> int:
     return 0
 
 
+#: What ``pigp compare`` and ``pigp bench spear3`` do, as their help says it.
+DESCRIPTION = (
+    "Run methods x machine error seeds from skews zero with 0.04 mA/min noise, the physics prior "
+    "computed from a different model ring; score every evaluation on the noise-free loss rate; "
+    "write runs.csv, summary.csv and Fig. 2b/2c-style figures."
+)
+
+
 def register(sub, bench) -> None:
-    """Add ``pigp compare`` to the top-level sub-parsers ``sub``."""
-    p = sub.add_parser(
-        "compare",
-        help="benchmark optimizers on simulated machines (spear3-13 protocol)",
-        description="Run methods x machine error seeds from skews zero with 0.04 mA/min noise, "
-        "the physics prior computed from a different model ring; score every evaluation on the "
-        "noise-free loss rate; write runs.csv, summary.csv and Fig. 2b/2c-style figures.",
-    )
+    """Add ``pigp compare`` to the top-level sub-parsers ``sub`` (the name users know; ``pigp
+    bench spear3`` is the same command, :func:`register_bench`)."""
+    help_ = "benchmark optimizers on simulated machines (spear3-13 protocol)"
+    add_compare_arguments(sub.add_parser("compare", help=help_, description=DESCRIPTION))
+
+
+def register_bench(bench) -> None:
+    """Add ``pigp bench spear3`` (the ring kind's benchmark: ``pigp compare``) to ``bench``."""
+    help_ = "the SPEAR3 ring's task (spear3-13 protocol; the same as pigp compare)"
+    add_compare_arguments(bench.add_parser("spear3", help=help_, description=DESCRIPTION))
+
+
+def add_compare_arguments(p) -> None:
+    """The options of ``pigp compare`` / ``pigp bench spear3`` on parser ``p`` (runs
+    :func:`cmd_compare`)."""
     p.add_argument(
         "--methods",
         nargs="+",

@@ -1,16 +1,16 @@
 r"""The benchmark's machines: machine ``s`` of a ring with its own loss-rate map
 (:func:`benchmark_ring`) and its true optimum :math:`f^*` (:func:`machine_optimum`, cached per
 process), of the ``"project"`` family (default) or the ``"wide"`` one
-(:mod:`~pigp_torch.bench.families`). The protocol that runs methods on them:
-:mod:`pigp_torch.bench.protocol`.
+(:mod:`~.families`). The protocol that runs methods on them:
+:mod:`pigp_torch.machines.ring.bench.protocol`.
 """
 
 from __future__ import annotations
 
-from pigp_torch.bench.families import check_family, check_wide_ring, wide_machine
-from pigp_torch.simulation.calibration import machine_loss_map
-from pigp_torch.simulation.ring import RingCoupling
-from pigp_torch.simulation.spec import RingSpec, as_ring_spec
+from pigp_torch.machines.ring.bench.families import check_family, check_wide_ring, wide_machine
+from pigp_torch.machines.ring.calibration import machine_loss_map
+from pigp_torch.machines.ring.ring import RingCoupling
+from pigp_torch.machines.ring.spec import RingSpec, as_ring_spec
 
 _OPTIMA: dict[tuple, float] = {}
 
@@ -35,7 +35,7 @@ def benchmark_ring(
     file is built by :func:`pigp_torch.loop.run.build_machine`.
 
     ``family="wide"``: the machine of the wide family
-    (:func:`~pigp_torch.bench.families.wide_machine`: re-tuned deck, drawn error scale, peak
+    (:func:`~.families.wide_machine`: re-tuned deck, drawn error scale, peak
     and background); it draws its own map, so ``machine_maps`` must be ``True``.
 
     Raises:
@@ -69,7 +69,7 @@ def machine_optimum(
     its knob set; with ``machine_maps`` its own loss-rate map; ``family`` as
     :func:`benchmark_ring`, the wide family with its own map whatever ``machine_maps`` says)
     from zero knobs and ``n_starts`` Sobol starts of L-BFGS-B
-    (:meth:`~pigp_torch.simulation.RingCoupling.optimum`); cached per process."""
+    (:meth:`~pigp_torch.machines.ring.ring.RingCoupling.optimum`); cached per process."""
     spec = as_ring_spec(ring, knobs=knobs)
     maps = True if check_family(family) == "wide" else _maps_key(machine_maps)
     key = (int(machine_seed), int(n_starts), spec, maps, family)

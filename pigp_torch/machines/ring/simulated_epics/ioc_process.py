@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pigp_torch.simulated_epics import (
+from pigp_torch.machines.ring.simulated_epics import (
     DEFAULT_PREFIX,
     FROZEN_SUFFIX,
     GLITCH_READINGS_SUFFIX,
@@ -31,7 +31,7 @@ from pigp_torch.simulated_epics import (
     STALL_PUTS_SUFFIX,
     STUCK_KNOB_SUFFIX,
 )
-from pigp_torch.simulated_epics.ca_env import (
+from pigp_torch.machines.ring.simulated_epics.ca_env import (
     READY_MESSAGE,
     client_environment,
     free_port,
@@ -52,7 +52,7 @@ class SimIOCProcess:
         prefix: prefix of the loss-rate and switch PVs.
         log_path: file receiving the IOC's stdout and stderr.
         put_log_path: the IOC's put log (every setpoint put it accepted, see
-            :mod:`~pigp_torch.simulated_epics.ioc_pvs`).
+            :mod:`~.ioc_pvs`).
     """
 
     process: subprocess.Popen
@@ -211,10 +211,10 @@ def start_sim_ioc(
 ) -> Iterator[SimIOCProcess]:
     r"""Run the simulated IOC in a subprocess on 127.0.0.1 for the ``with`` block.
 
-    Launches ``python -m pigp_torch.simulated_epics.ioc`` with the server bound to the loopback
-    interface and ``port`` (default: a free one, so parallel runs do not collide), waits (at most
-    ``startup_timeout`` s) for its ready line and for its PVs to answer over CA, and stops it
-    (SIGTERM, then SIGKILL) when the block ends, also on errors. The IOC keeps a put log (every
+    Launches ``python -m pigp_torch.machines.ring.simulated_epics.ioc`` with the server bound to the
+    loopback interface and ``port`` (default: a free one, so parallel runs do not collide), waits
+    (at most ``startup_timeout`` s) for its ready line and for its PVs to answer over CA, and stops
+    it (SIGTERM, then SIGKILL) when the block ends, also on errors. The IOC keeps a put log (every
     setpoint put it accepted) in a temporary file, read with :meth:`SimIOCProcess.puts`.
 
     With ``set_client_env`` (default) the block runs with ``EPICS_CA_ADDR_LIST=127.0.0.1:port``,
@@ -229,13 +229,13 @@ def start_sim_ioc(
         RuntimeError: the IOC exited during start-up (its log is in the message).
         TimeoutError: it did not answer within ``startup_timeout``.
     """
-    from pigp_torch.simulation.spear3 import knob_names_for
-    from pigp_torch.simulation.spec import RingSpec
+    from pigp_torch.machines.ring.spear3 import knob_names_for
+    from pigp_torch.machines.ring.spec import RingSpec
 
     names = knob_names_for(knobs)
     ring = RingSpec(knobs=knobs if isinstance(knobs, str) else tuple(names))
     port = free_port() if port is None else int(port)
-    cmd = [sys.executable, "-m", "pigp_torch.simulated_epics.ioc", "--seed", str(int(seed))]
+    cmd = [sys.executable, "-m", f"{__package__}.ioc", "--seed", str(int(seed))]
     cmd += ["--ring", json.dumps(ring.to_dict())]
     cmd += ["--noise", repr(float(noise)), "--noise-seed", str(int(noise_seed))]
     cmd += ["--prefix", prefix, "--port", str(port)]

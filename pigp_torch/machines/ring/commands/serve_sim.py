@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import sys
 
-from pigp_torch.commands.ring_options import add_ring_arguments, ring_spec_from_args
+from pigp_torch.machines.ring.commands.ring_options import add_ring_arguments, ring_spec_from_args
 
 
 def cmd_serve_sim(args) -> int:
     import torch
 
-    from pigp_torch.simulated_epics.ioc import serve, sim_ioc_from_args
+    from pigp_torch.machines.ring.simulated_epics.ioc import serve, sim_ioc_from_args
 
     torch.set_num_threads(1)
     ring = ring_spec_from_args(args)
@@ -29,7 +29,7 @@ def cmd_serve_sim(args) -> int:
 
 def register(sub, bench) -> None:
     """Add ``pigp serve-sim`` to the top-level sub-parsers ``sub`` (nothing under ``bench``)."""
-    from pigp_torch.simulated_epics import add_ioc_arguments
+    from pigp_torch.machines.ring.simulated_epics import add_ioc_arguments
 
     p = sub.add_parser(
         "serve-sim",

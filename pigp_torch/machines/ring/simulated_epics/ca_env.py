@@ -6,7 +6,7 @@ import contextlib
 import os
 from collections.abc import Iterator, Mapping
 
-from pigp_torch.simulated_epics import (
+from pigp_torch.machines.ring.simulated_epics import (
     LOOPBACK,
     free_ports,
 )

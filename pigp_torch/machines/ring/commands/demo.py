@@ -1,17 +1,17 @@
 """``pigp demo``: the main job end to end on the embedded simulated ring
-(:mod:`pigp_torch.bench.demo`)."""
+(:mod:`pigp_torch.machines.ring.bench.demo`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from pigp_torch.commands.train_surrogate import train_default
+from pigp_torch.surrogate.defaults import TRAIN_DEFAULTS
 
 
 def cmd_demo(args) -> int:
     from pigp_torch._utils.pool import default_workers
-    from pigp_torch.bench.demo import DemoSettings, run_demo
-    from pigp_torch.commands.compare import write_comparison
+    from pigp_torch.machines.ring.bench.demo import DemoSettings, run_demo
+    from pigp_torch.machines.ring.commands.compare import write_comparison
 
     settings = DemoSettings(
         model_seed=args.model_seed,
@@ -57,7 +57,7 @@ def register(sub, bench) -> None:
     )
     p.add_argument(
         "--target",
-        default=train_default("target"),
+        default=TRAIN_DEFAULTS["target"],
         help="surrogate target (default inv_sq_excess; log_excess is safer with little data)",
     )
     p.add_argument(

@@ -57,7 +57,7 @@ a setpoint (after the control limits) is appended to that file as a JSON line
 ``{"pv", "knob", "value", "previous", "time"}`` — ``previous`` is the setpoint before the put,
 so ``|value - previous|`` is the step the IOC was asked for — and an IOC reboot as
 ``{"reboot": true, "time"}``. Tests read it (:meth:`SimIOCProcess.puts
-<pigp_torch.simulated_epics.ioc_process.SimIOCProcess.puts>`) to check what the IOC received,
+<.ioc_process.SimIOCProcess.puts>`) to check what the IOC received,
 independently of the client.
 
 The loss-rate PV has display limits ``LOPR``/``HOPR`` = ``LOSS_RATE_LIMITS`` ([0, 100] mA/min),
@@ -67,7 +67,7 @@ The loss rate's CA timestamp is the time of its last refresh (a client read does
 it), so a client can tell a fresh reading from a repeated one.
 
 The physics is :class:`~pigp_torch.machine.SimulatedMachine` around a
-:class:`~pigp_torch.simulation.RingCoupling` ring: at every refresh the machine is set to the
+:class:`~..ring.RingCoupling` ring: at every refresh the machine is set to the
 readbacks and one noisy reading :math:`y = f(x_\mathrm{rb}) + \epsilon`,
 :math:`\epsilon \sim \mathcal N(0, \sigma_n^2)` (seeded, default :math:`\sigma_n` = 0.04 mA/min),
 is published. Between refreshes a read returns the last published value, as on a real monitor

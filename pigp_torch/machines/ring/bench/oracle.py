@@ -7,22 +7,22 @@ background :math:`f_\infty` and peak height :math:`f(\boldsymbol\mu)` (so the pr
 :math:`\log c` is centred on the truth), and the model's prior on where the centre lies (the
 centre itself stays unknown). The gap between it and ``pigp-physics`` on the same machines is
 what the model's prior costs. It reads the machine from the run (``ctx.machine.sim``), so it
-works on either machine family (:mod:`~pigp_torch.bench.families`).
+works on either machine family (:mod:`~.families`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+from pigp_torch.machines.ring.ensemble import unconstrained_optimum
 from pigp_torch.methods import MethodSpec, RunContext
 from pigp_torch.optimizers.physics_bo import PhysicsModelBO
-from pigp_torch.simulation.ensemble import unconstrained_optimum
 
 
 def machine_peak(sim):
     r"""``(mu, B)``: the unconstrained optimum :math:`\boldsymbol\mu` (``K``, control units)
     of the loss rate of the machine ``sim`` itself and the peak's shape :math:`B` there
-    (``K x K``; :func:`~pigp_torch.simulation.ensemble.unconstrained_optimum`, search boxes up
+    (``K x K``; :func:`~pigp_torch.machines.ring.ensemble.unconstrained_optimum`, search boxes up
     to 4 knob boxes). Searched on ``sim`` as built (not rebuilt from its error seed, which
     would lose a wide machine's re-tuned lattice and drawn error scale).
 

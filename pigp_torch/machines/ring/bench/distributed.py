@@ -5,12 +5,12 @@ r"""Benchmark sweeps on a Dask distributed cluster: one task per (method, machin
 ``tcp://10.0.0.5:8786``, whose workers must have ``pigp_torch`` installed) or ``"local"``, a
 :class:`distributed.LocalCluster` of single-threaded worker processes bound to 127.0.0.1 that lives
 for the call. :func:`run_jobs` runs the jobs here (serially or on a process pool) or through it;
-:func:`~pigp_torch.bench.run_benchmark` uses Dask when given ``scheduler=``::
+:func:`~.run_benchmark` uses Dask when given ``scheduler=``::
 
     df = run_benchmark(["pigp", "ml2"], range(1, 13), scheduler="tcp://10.0.0.5:8786")
 
 Same numbers as a local run. Every run is seeded by its own ``(method, machine seed)``
-(:func:`~pigp_torch.bench.run_seed`) and the machine seed, never by a process-global state,
+(:func:`~.run_seed`) and the machine seed, never by a process-global state,
 so where it executes does not matter; results are returned in JOB order (not completion order),
 so the concatenated table equals the serial one row for row (wall-time columns aside).
 

@@ -2,7 +2,7 @@ r"""The mismatch suite: priors built from a model that the machines are not.
 
 Every case is a :class:`Case`: a name, the prior the optimizer is given (from the model, never
 from a machine), method options it implies (a shifted centre prior) and the machines' loss-rate
-maps. The machines are the benchmark's (:func:`~pigp_torch.bench.protocol.run_benchmark`);
+maps. The machines are the benchmark's (:func:`~.protocol.run_benchmark`);
 only the prior, or the machines' loss-rate map, is wrong.
 
 Cases (:func:`cases`):
@@ -139,7 +139,7 @@ def retuned_lattice(dnu_x: float, dnu_y: float, optics: str = "user"):
 
     import at
 
-    from pigp_torch.simulation import deck
+    from pigp_torch.machines.ring import deck
 
     ring = deck.spear3_ring(optics).deepcopy()
     nu = ring.get_tune(get_integer=True)[:2]
@@ -152,8 +152,8 @@ def retuned_lattice(dnu_x: float, dnu_y: float, optics: str = "user"):
 def retuned_model(dnu: float, model_seed: int = 0, optics: str = "user"):
     """The SPEAR3 model ring ``model_seed`` with both tunes moved by ``dnu`` (QF, QD;
     :func:`retuned_lattice`)."""
-    from pigp_torch.simulation.ring import RingCoupling
-    from pigp_torch.simulation.spear3 import (
+    from pigp_torch.machines.ring.ring import RingCoupling
+    from pigp_torch.machines.ring.spear3 import (
         LOSS_RATE_MAP,
         knob_calibration_for,
         knob_names_for,
