@@ -1,14 +1,13 @@
 """pigp-torch: physics-informed Gaussian-process Bayesian optimization for particle accelerators.
 
-The package's top level is the method's chain, one package per stage: ``simulation`` (coupling
-model of a storage ring; the real SPEAR3 shipped) -> ``data`` (datasets drawn from it; run logs)
--> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision matrix) -> ``kernels`` and
-``models`` (GPs, posteriors) -> ``optimizers`` and ``methods`` (ask/tell, the registry) ->
-``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). The machine kinds
-(``machines``: the registry ``KINDS``, one folder a kind: the ring, ARES-EA) sit on the chain and
-use it. Around it: ``cli``
-and ``commands``, ``integrations`` (Xopt, Badger), ``benchmark``, ``reporting``,
-``simulated_epics``;
+The package's top level is the method's chain, one package per stage: the ring's simulation
+(coupling model of a storage ring, the real SPEAR3 shipped: ``machines.ring``) -> ``data`` (datasets
+drawn from it; run logs) -> ``surrogate`` (neural network) -> ``prior`` (Hessian -> precision
+matrix) -> ``kernels`` and ``models`` (GPs, posteriors) -> ``optimizers`` and ``methods`` (ask/tell,
+the registry) -> ``loop`` (``optimize``, run files, runs) -> ``machine`` (simulated, EPICS). The
+machine kinds (``machines``: the registry ``KINDS``, one folder a kind: the ring with its benchmark,
+demo, simulated EPICS servers and commands, ARES-EA) sit on the chain and use it. Around it: ``cli``
+and ``commands``, ``integrations`` (Xopt, Badger), ``bench`` (the BO speed run), ``reporting``;
 ``_utils`` holds the plumbing every stage shares.
 
 Performance note: the simulator multiplies many stacks of 6x6 matrices with numpy; with a

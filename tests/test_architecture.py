@@ -93,6 +93,10 @@ ALIAS_PACKAGES = {
 }
 
 
+#: The module of :func:`~pigp_torch._utils.aliases.alias_package`.
+HELPER = "pigp_torch._utils.aliases"
+
+
 def _module_name(path: Path) -> str:
     parts = ("pigp_torch", *path.relative_to(PACKAGE).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
@@ -152,6 +156,8 @@ def _resolve(target: str, graph: dict[str, set[str]], seen: frozenset[str] = fro
     old = next((o for o in ALIAS_PACKAGES if target.startswith(o + ".")), None)
     if target not in graph and old is not None:  # a module of an alias package
         return _resolve(ALIAS_PACKAGES[old] + target[len(old) :], graph, seen)
+    if target in ALIAS_PACKAGES and not graph[target] - {HELPER}:  # names copied at run time
+        return _resolve(ALIAS_PACKAGES[target], graph, seen | {target})
     if target not in ALIASES or target in seen:
         return {target}
     return set().union(*(_resolve(t, graph, seen | {target}) for t in graph[target]))
@@ -256,24 +262,31 @@ def test_an_import_of_an_alias_counts_as_an_import_of_the_kind():
     assert _resolve("pigp_torch.benchmark.protocol", graph) == {f"{ring}.bench.protocol"}
     assert _resolve("pigp_torch.simulation.spec", graph) == {f"{ring}.spec"}
     assert _resolve("pigp_torch.bench.bo_speed", graph) == {"pigp_torch.bench.bo_speed"}
-    bench = _resolve("pigp_torch.bench", graph) - {"pigp_torch._utils.aliases"}
-    assert bench == {f"{ring}.bench"}
+    assert _resolve("pigp_torch.bench", graph) == {f"{ring}.bench"}
+    assert _resolve("pigp_torch.testing", graph) == {f"{ring}.simulated_epics"}
     assert not any(_unit(t) in _kinds() for t in _resolve("pigp_torch.loop.config", graph))
 
 
 def test_alias_modules_only_re_export_a_kind():
     """An alias module is a docstring, ``from <one kind module> import (...)`` and ``__all__``
     naming exactly the imported names, nothing else (an alias package's ``__init__`` also calls
-    ``alias_package``, imported from ``pigp_torch._utils.aliases``)."""
+    ``alias_package``, imported from ``pigp_torch._utils.aliases``); or, for an alias package, a
+    docstring and ``alias_package(__name__, "<its new path>", globals())`` alone (the names are
+    copied at import, :data:`ALIAS_PACKAGES` states where they come from)."""
     modules = _modules()
     for name in sorted(ALIASES):
         body = ast.parse(modules[name].read_text(encoding="utf-8")).body
         doc, middle, rest = body[0], body[1:-1], body[-1]
-        helper = "pigp_torch._utils.aliases"
-        calls = [n for n in middle if isinstance(n, ast.Expr)]
-        assert all(n.value.func.id == "alias_package" for n in calls), name
-        imports = [n for n in middle if n not in calls and getattr(n, "module", "") != helper]
         assert isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant), name
+        calls = [n for n in body[1:] if isinstance(n, ast.Expr)]
+        assert all(n.value.func.id == "alias_package" for n in calls), name
+        if name in ALIAS_PACKAGES and len(body) == 3:  # the short form of an alias package
+            (call,) = calls
+            args = [ast.unparse(a) for a in call.value.args]
+            assert args == ["__name__", repr(ALIAS_PACKAGES[name]), "globals()"], name
+            assert body[1].module == HELPER, name
+            continue
+        imports = [n for n in middle if n not in calls and getattr(n, "module", "") != HELPER]
         assert imports and all(isinstance(n, ast.ImportFrom) for n in imports), name
         assert all(_unit(n.module) in _kinds() for n in imports), name
         assert isinstance(rest, ast.Assign) and rest.targets[0].id == "__all__", name
@@ -400,3 +413,18 @@ def test_a_kinds_modules_are_one_unit_above_the_core():
     assert _unit("pigp_torch.machines.kind") == _unit("pigp_torch.machines") == "machines"
     assert _layer("machines.ring") == KIND_LAYER > _layer("bench") > _layer("loop")
     assert _layer("methods") > _layer("machines") and _layer("commands") > KIND_LAYER
+
+
+#: Modules outside ``loop/`` that drive optimizers or machines: they read the declared protocols
+#: (:class:`~pigp_torch.optimizers.AskTellOptimizer`, :class:`~pigp_torch.machine.base.Machine`).
+PROTOCOL_READERS = ("data/runlog/replay.py", "machines/drift.py", "commands/optimize_output.py")
+
+
+def test_the_modules_that_drive_optimizers_outside_the_loop_do_not_probe():
+    """No ``getattr(x, name, default)`` or ``hasattr`` in :data:`PROTOCOL_READERS` (the loop's
+    own modules are held by ``tests/loop/test_protocols.py``)."""
+    from tests.loop.test_protocols import _probes
+
+    assert [(f, _probes(PACKAGE / f)) for f in PROTOCOL_READERS] == [
+        (f, []) for f in PROTOCOL_READERS
+    ]

@@ -46,8 +46,14 @@ class _AliasFinder(importlib.abc.MetaPathFinder):
         return importlib.util.spec_from_loader(fullname, _AliasLoader(moved))
 
 
-def alias_package(old: str, new: str) -> None:
+def alias_package(old: str, new: str, namespace: dict | None = None) -> None:
     """Make every module ``new.<m>`` importable as ``old.<m>`` (idempotent); call it from the
-    ``__init__`` of ``old``."""
+    ``__init__`` of ``old``. With ``namespace`` (that ``__init__``'s ``globals()``), ``new`` is
+    imported and its public names (``__all__``, and ``__all__`` itself) are set there, so that
+    ``from old import name`` gives ``new``'s object."""
     if not any(isinstance(f, _AliasFinder) and f.old == old for f in sys.meta_path):
         sys.meta_path.append(_AliasFinder(old, new))
+    if namespace is not None:
+        moved = importlib.import_module(new)
+        namespace["__all__"] = list(moved.__all__)
+        namespace.update({name: getattr(moved, name) for name in moved.__all__})

@@ -6,46 +6,5 @@ its names here and each of its modules at its old path (``pigp_torch.bench.proto
 the moved module itself) still import."""
 
 from pigp_torch._utils.aliases import alias_package
-from pigp_torch.machines.ring.bench import (
-    BO_DEFAULTS,
-    DEFAULT_BUDGETS,
-    METHODS,
-    NOISE,
-    MethodSpec,
-    RunContext,
-    first_moves,
-    machine_archive,
-    machine_optimum,
-    model_prior,
-    plot_prior_mean,
-    plot_runs,
-    run_benchmark,
-    run_one,
-    run_scores,
-    run_seed,
-    score_run,
-    summarize,
-)
 
-alias_package(__name__, "pigp_torch.machines.ring.bench")
-
-__all__ = [
-    "BO_DEFAULTS",
-    "DEFAULT_BUDGETS",
-    "METHODS",
-    "NOISE",
-    "MethodSpec",
-    "RunContext",
-    "first_moves",
-    "machine_archive",
-    "machine_optimum",
-    "model_prior",
-    "plot_prior_mean",
-    "plot_runs",
-    "run_benchmark",
-    "run_one",
-    "run_scores",
-    "run_seed",
-    "score_run",
-    "summarize",
-]
+alias_package(__name__, "pigp_torch.machines.ring.bench", globals())

@@ -29,7 +29,7 @@ class BoundedRing:
 
 def simulated_ring(config: RunConfig):
     r"""The simulated ring of a ``kind: sim`` run: ``RingSpec.build(error_seed)`` of the section's
-    :meth:`~pigp_torch.loop.config.SimMachineConfig.ring_spec` — the SPEAR3 deck ``optics`` with
+    :meth:`~.section.SimMachineConfig.ring_spec` — the SPEAR3 deck ``optics`` with
     the run's windings (:class:`~pigp_torch.machines.ring.spear3.Spear3Coupling`), or, with
     ``machine.lattice``, that lattice file with the run's knobs as element names
     (:class:`~pigp_torch.machines.ring.ring.RingCoupling`, calibration
