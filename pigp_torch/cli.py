@@ -44,7 +44,7 @@ class _BenchCommands:
 
     def add_parser(self, *args, **kwargs) -> argparse.ArgumentParser:
         if self._bench is None:
-            p = self._sub.add_parser("bench", help="speed benchmarks (print numbers)")
+            p = self._sub.add_parser("bench", help="benchmarks: the machine kinds' tasks, speeds")
             self._bench = p.add_subparsers(dest="bench", required=True)
         return self._bench.add_parser(*args, **kwargs)
 
