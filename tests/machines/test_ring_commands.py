@@ -90,3 +90,19 @@ def test_the_plan_text_of_a_simulated_ring_comes_from_the_kind():
     config.objective_unit = "m"  # a length is shown in µm, as every number of the plan
     assert "(SPEAR3 design, error seed 1 with the ring's loss-rate map" in ring.describe(config, 0)
     assert ring.describe(config, None).endswith("noise 40000 µm, noise seed 0)")
+
+
+def test_an_ask_time_of_eight_characters_stays_a_column_of_its_own():
+    """``7.82e-05`` s (8 characters, an RCDS proposal) does not run into the best loss rate; a
+    shorter time keeps the column where it was (the table's width is unchanged)."""
+    import pandas as pd
+
+    from pigp_torch.machines.ring.commands.compare import format_summary
+
+    row = {"n_runs": 1, "n_reached_95": 0, "budget": 6, "steps_to_95_median": float("nan"),
+           "best_f_true_median": 0.6154, "ask_time_s_median": 7.82e-05}  # fmt: skip
+    table = pd.DataFrame([row, {**row, "ask_time_s_median": 0.0459}],
+                         index=pd.Index(["rcds", "pigp-physics"], name="method"))  # fmt: skip
+    fast, slow = format_summary(table).splitlines()[2:4]
+    assert fast.split()[-2:] == ["0.6154", "7.82e-05"]
+    assert slow.endswith("    0.6154  0.0459") and len(slow) == len(fast) - 1

@@ -58,7 +58,7 @@ def format_summary(summary, fraction: int = 95) -> str:
             f"{num(col(row, 'gain_40_median'), '.3f'):>9}"
             f"{num(col(row, 'gain_100_median'), '.3f'):>9}"
             f"{num(col(row, 'best_f_true_median'), '.4f'):>10}"
-            f"{num(col(row, 'ask_time_s_median'), '.3g'):>8}"
+            f" {num(col(row, 'ask_time_s_median'), '.3g'):>7}"  # a space even at 8 characters
         )
     note = (
         "gain@k: fraction of the way from the start to the machine's true optimum after k "
