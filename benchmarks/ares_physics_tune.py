@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from pigp_torch.bench import ares as bench
+from pigp_torch.machines.ares_ea import benchmark as bench
 from pigp_torch.machines.ares_ea.simulation import AresSegment, load_trials, parse_trial_ids
 
 
