@@ -74,3 +74,14 @@ def test_each_run_is_one_optimize_call(trials, monkeypatch):
     assert [(b, r, m) for b, r, m, _ in calls] == [(5, "none", "published-nm")]
     assert calls[0][3]["step"].tolist() == [0, 1, 2, 3, 4]
     assert df["step"].tolist() == [0, 1, 2, 3, 4, 5]
+
+
+def test_a_noise_free_ares_physics_run_sets_back_to_its_best_reading(trials):
+    """Noise-free screen, the model passes its check: the set-back (``recommend()``) is the best
+    reading's setting, so its row reads that reading's beam to the bit (today's set-back)."""
+    df = run_ares_trial(trials[1], "ares-physics", steps=8, seed=0)
+    steps = df[df["step"] < 8]
+    best = steps.loc[steps["mae"].idxmin()]
+    final = df[df["step"] == 8].iloc[0]
+    cols = ["mu_x", "sigma_x", "mu_y", "sigma_y", "mae", "mae_true"]
+    assert final[cols].tolist() == best[cols].tolist()
