@@ -89,6 +89,7 @@ def test_the_screen_resolution_unknown_blurs_the_sizes_only():
     model, c, h = ares_model_parts()
     model_r, c_r, h_r = ares_model_parts(screen_resolution=4e-5)
     assert c_r.shape == (20,) and float(c_r[-1]) == float(h_r[-1]) == 2e-5
+    assert torch.equal(c_r[:19], c) and torch.equal(h_r[:19], h)
     theta = torch.cat([c, torch.zeros(1, dtype=D)])
     assert torch.equal(model_r(X, theta), model(X, c))
     theta[-1] = 1.5e-5
