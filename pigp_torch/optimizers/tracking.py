@@ -96,6 +96,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         **options,
     ) -> None:
         self.track = isinstance(fallback, str) and fallback == "track"
+        if self.track:  # a repeat reading of a drifting machine reads its drift as noise
+            options.setdefault("noise_probe", 0)
         super().__init__(bounds, fallback="nm" if self.track else fallback, **options)
         if not (0 < track_trust_min <= track_trust <= track_trust_max):
             raise ValueError("need 0 < track_trust_min <= track_trust <= track_trust_max")
@@ -278,8 +280,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
     def recommend(self) -> torch.Tensor:
         """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
         optimum of the tracked model, plus the offset while it is on, around the current
-        setting); before, :meth:`best`'s setting (the one-shot behaviour)."""
-        return self.ask() if self.tracking else self.best()[0]
+        setting); before, the checked model's (the one-shot behaviour)."""
+        return self.ask() if self.tracking else super().recommend()
 
     def tracked(self) -> dict[str, tuple[float, str]]:
         """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while

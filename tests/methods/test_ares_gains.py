@@ -76,3 +76,28 @@ def test_fit_recovers_quadrupoles_ten_percent_strong():
     model16, c16, h16 = ares_model_parts(quad_gain_half_width=0)
     u16, _ = fit_unknowns(model16, X, O, c16, h16, obs_sd=1e-6, prior_sd=3**-0.5, max_iter=100)
     assert float((model16(X, c16 + h16 * u16) - O).abs().max()) > 100e-6
+
+
+def test_the_screen_resolution_unknown_blurs_the_sizes_only():
+    """``screen_resolution`` > 0 adds one unknown r in [0, r_max] (centre and half width r_max/2):
+    at r = 0 the model is the model without it to the bit; at r the sizes read are
+    sqrt(sigma^2 + r^2) and the centroids unchanged, for one theta and a batch of thetas; the
+    machine model names it with its unit."""
+    from pigp_torch.machines.ares_ea.methods import ares_machine_model
+
+    X = _settings(3, 1)
+    model, c, h = ares_model_parts()
+    model_r, c_r, h_r = ares_model_parts(screen_resolution=4e-5)
+    assert c_r.shape == (20,) and float(c_r[-1]) == float(h_r[-1]) == 2e-5
+    assert torch.equal(c_r[:19], c) and torch.equal(h_r[:19], h)
+    theta = torch.cat([c, torch.zeros(1, dtype=D)])
+    assert torch.equal(model_r(X, theta), model(X, c))
+    theta[-1] = 1.5e-5
+    o, o0 = model_r(X, theta), model(X, c)
+    assert torch.equal(o[:, [0, 2]], o0[:, [0, 2]])
+    torch.testing.assert_close(o[:, [1, 3]], (o0[:, [1, 3]].square() + 1.5e-5**2).sqrt())
+    batch = torch.stack([theta, theta])[:, None, :]
+    assert torch.equal(model_r(X, batch)[1], o)
+    mm = ares_machine_model(torch.zeros(4), screen_resolution=4e-5)
+    assert mm.unknown_names[-1] == "screen_resolution" and mm.unknown_units[-1] == "m"
+    assert mm.unknown_names[-2] == "AREAMQZM3_gain"

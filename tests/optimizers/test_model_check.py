@@ -84,3 +84,57 @@ def test_wrong_model_falls_back_with_a_notice_and_the_fallback_asks():
     assert opt.best()[1] == min(opt.Y)
     with pytest.raises(ValueError, match="fallback"):
         _optimizer(0.01, fallback="nope")
+
+
+def _noisy_runs(truth_machine, stated: float, sd: float, seeds, n: int = 30, **kw):
+    """One optimizer per seed, ``n`` readings with noise ``sd`` against the stated ``stated``."""
+    out = []
+    for seed in seeds:
+        opt = _optimizer(stated, fallback="nm", **kw)
+        _run(opt, truth_machine, sd, n, seed)
+        out.append(opt)
+    return out
+
+
+def test_the_noise_probe_learns_the_noise_and_keeps_the_right_model():
+    """The right model, readings 5x noisier than stated (jitter the stated noise lacks), 10
+    seeds of 30 readings: without the probe every run hands over; with it at most 1 in 10 does
+    (a false-alarm rate of at most 10 %), the learned noise is within 0.5-1.5x the true 0.01, and
+    the recommended setting is nearer the optimum than the best reading on average."""
+    truth = torch.tensor([1.3, -0.2, 0.8], dtype=D)
+
+    def machine(x):
+        return _model(x[None], truth)[0]
+
+    x_opt = torch.stack([(TARGET[0] - truth[1]) / truth[0], TARGET[1] / truth[2]])
+    plain = _noisy_runs(machine, 0.002, 0.01, range(10), noise_probe=0)
+    assert all(o.fallback is not None for o in plain)
+    probed = _noisy_runs(machine, 0.002, 0.01, range(10))
+    assert sum(o.fallback is not None for o in probed) <= 1
+    for o in probed:
+        assert 0.005 <= o.noise_sd <= 0.015 and o.best_from == "model"
+        assert o.obs_sd == o.noise_sd and o.check_sd > o.noise_sd
+    d_rec = [float((o.recommend() - x_opt).norm()) for o in probed]
+    d_best = [float((o.X[int(torch.tensor(o.Y).argmin())] - x_opt).norm()) for o in probed]
+    assert sum(d_rec) < 0.8 * sum(d_best)
+
+
+def test_the_noise_probe_on_a_deterministic_machine_hands_over_as_before():
+    """A wrong model without noise: the probe's one repeat reads the same to the bit, so the
+    check hands over at the same reading as without the probe; the recommended setting is the
+    best reading."""
+    truth = torch.tensor([1.3, -0.2, 0.8], dtype=D)
+
+    def machine(x):
+        return _model(x[None], truth)[0] + torch.stack([0.5 * x[1] ** 2, 0.4 * x[0] ** 2])
+
+    (plain,) = _noisy_runs(machine, 0.001, 0.0, [0], noise_probe=0)
+    (probed,) = _noisy_runs(machine, 0.001, 0.0, [0])
+    fell = probed.notices[0]["at_told"]
+    assert fell == plain.notices[0]["at_told"]
+    assert torch.equal(probed.X[fell - 1], probed.X[fell - 2])  # the repeat reading
+    assert probed.noise_sd == 0.0 and probed.check_sd == probed.obs_sd == 0.001
+    assert probed.best_from == "readings"
+    assert torch.equal(probed.recommend(), probed.X[int(torch.tensor(probed.Y).argmin())])
+    with pytest.raises(ValueError, match="noise_probe"):
+        _optimizer(0.01, noise_probe=-1)

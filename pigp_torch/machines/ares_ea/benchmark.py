@@ -5,7 +5,9 @@ on an :class:`~.machine.AresMachine` reading the method's objective
 (:func:`~.methods.ares_objective_for`), run by the loop every machine runs through
 (:func:`pigp_torch.loop.optimize`: checked moves and readings). Step 0 measures the start setting
 [10, −10, 0, 10, 0]; steps 1 … ``steps − 1`` measure the method's asks; then the knobs are set back
-to the method's best measured setting and the beam is measured once more (row ``step = steps``).
+to the method's recommended setting (``recommend()``: the best measured setting by default, where
+the evidence puts the optimum for a method with a model of the machine) and the beam is measured
+once more (row ``step = steps``).
 
 Per row: the trial, the method, the step, the four beam numbers READ on the screen (m; noisy when
 the screen has noise), ``mae`` = their mean absolute error to the target (m), and ``mae_true`` =
@@ -177,14 +179,15 @@ def run_ares_trial(
     # acquisition starts) draw the same numbers for the same seed, so a run repeats to the bit;
     # the caller's generator state is restored afterwards. The steps are the one loop's
     # (pigp_torch.loop.optimize), with the readings as they come (no stated noise: no re-reads),
-    # the knobs left where the last step put them; then set back to the method's best.
+    # the knobs left where the last step put them; then set back to the method's recommended
+    # setting (recommend(): the best reading, or where a model puts the optimum).
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         opt = spec.build(ctx)
         optimize(machine, opt, None, int(steps), method=spec.name, restore="none",
                  handle_signals=False, callback=lambda row: record(int(row["step"])))  # fmt: skip
-        x_best, _ = opt.best()
-    machine.set(x_best)
+        x_final = opt.recommend()
+    machine.set(x_final)
     machine.read()
     record(int(steps))
     return pd.DataFrame(rows, columns=list(STEP_COLUMNS))

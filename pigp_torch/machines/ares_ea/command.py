@@ -100,7 +100,7 @@ def cmd_bench_ares(args) -> int:
     print(
         f"ARES-EA: {len(ids)} trials, {args.steps} steps, screen noise "
         f"{args.noise * 1e6:g} um, machine: {args.model_error} ({CASE_TEXT[args.model_error]}); "
-        "MAE noise-free, after setting back to the best"
+        "MAE noise-free, after setting back to the recommended setting"
     )
     print(format_summary(summary))
     print(f"wrote {out / 'steps.csv'}, scores.csv, summary.csv, run.json, mae_vs_step.png")

@@ -77,7 +77,12 @@ ARES_CALIBRATED_QUADS: tuple[str, ...] = ("AREAMQZM1", "AREAMQZM2", "AREAMQZM3")
 ARES_QUAD_GAIN_HALF_WIDTH = 0.05
 
 
-def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH):
+def ares_model_parts(
+    segment=None,
+    lattice=None,
+    quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH,
+    screen_resolution=0.0,
+):
     r"""The ARES-EA model for :class:`~pigp_torch.optimizers.model_fit.FittedModelOptimizer`:
     ``(model, center, half_width)``.
 
@@ -88,7 +93,10 @@ def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_
     :math:`g_q k_{1,\text{set}}` (a calibration or energy error). ``P = 19`` by default, 16
     without gains. The energy, bunch length and energy spread are held at the middle of their
     ranges. ``center`` and ``half_width``: the middle and half width of the ranges the trials
-    were drawn from, and ``1 ± quad_gain_half_width`` (default 0.05) for the gains.
+    were drawn from, and ``1 ± quad_gain_half_width`` (default 0.05) for the gains. With
+    ``screen_resolution`` :math:`r_{max}` > 0 (m; default 0: none) one more unknown, the screen's
+    resolution :math:`r` in :math:`[0, r_{max}]`: the sizes read are
+    :math:`\sqrt{\sigma^2 + r^2}`.
     """
     from pigp_torch.machines.ares_ea.simulation import (
         INCOMING_NAMES,
@@ -110,11 +118,13 @@ def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_
     idx = torch.tensor([order.index(n) for n in ARES_FITTED_INCOMING])
     m_lo, m_hi = lattice["misalignments"]["range_m"]
     n_gain = len(ARES_CALIBRATED_QUADS) if quad_gain_half_width > 0 else 0
+    n_res = 1 if screen_resolution > 0 else 0
     center = torch.cat(
         [
             (lo + hi)[idx] / 2,
             torch.full((8,), (m_lo + m_hi) / 2, dtype=DTYPE),
             torch.ones(n_gain, dtype=DTYPE),
+            torch.full((n_res,), screen_resolution / 2, dtype=DTYPE),
         ]
     )
     half = torch.cat(
@@ -122,6 +132,7 @@ def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_
             (hi - lo)[idx] / 2,
             torch.full((8,), (m_hi - m_lo) / 2, dtype=DTYPE),
             torch.full((n_gain,), float(quad_gain_half_width), dtype=DTYPE),
+            torch.full((n_res,), screen_resolution / 2, dtype=DTYPE),
         ]
     )
     base = (lo + hi) / 2
@@ -132,9 +143,14 @@ def ares_model_parts(segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_
         inc = torch.cat([inc[..., :1], theta[..., :8], inc[..., 9:]], dim=-1)
         if n_gain:
             gain = torch.ones(*theta.shape[:-1], len(KNOB_NAMES), dtype=theta.dtype)
-            gain = gain.index_copy(-1, torch.tensor(quad_idx), theta[..., 16:])
+            gain = gain.index_copy(-1, torch.tensor(quad_idx), theta[..., 16 : 16 + n_gain])
             X = X * gain  # broadcast as the incoming beam and misalignments are
-        return segment.observe(X, inc, theta[..., 8:16], energy=base[0])
+        out = segment.observe(X, inc, theta[..., 8:16], energy=base[0])
+        if not n_res:
+            return out
+        r = theta[..., -1:]  # broadcast against the rows as theta is
+        size = (out[..., [1, 3]].square() + r.square()).sqrt()
+        return torch.stack([out[..., 0], size[..., 0], out[..., 2], size[..., 1]], -1)
 
     return model, center, half
 
@@ -145,12 +161,17 @@ ARES_FITTED_UNITS: tuple[str, ...] = ("m", "rad", "m", "rad", "m", "rad", "m", "
 
 
 def ares_machine_model(
-    target, segment=None, lattice=None, quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH
+    target,
+    segment=None,
+    lattice=None,
+    quad_gain_half_width=ARES_QUAD_GAIN_HALF_WIDTH,
+    screen_resolution=0.0,
 ):
     r"""The ARES-EA segment as a :class:`~pigp_torch.prior.machine_model.MachineModel`: the five
     knobs (bidirectional bounds), the four beam numbers on the screen (m), the unknowns of
     :func:`ares_model_parts` (the incoming beam and misalignments with the ranges the trials were
-    drawn from, and the quadrupoles' gains ``1 ± quad_gain_half_width``; no gains with 0), and the
+    drawn from, the quadrupoles' gains ``1 ± quad_gain_half_width`` (none with 0) and the screen's
+    resolution in ``[0, screen_resolution]`` (none with 0, the default)), and the
     goal :func:`smooth_mae` to ``target`` (``4`` numbers, m) with residual ``o - target``."""
     from pigp_torch.machines.ares_ea.simulation import (
         KNOB_NAMES,
@@ -160,8 +181,11 @@ def ares_machine_model(
     )
     from pigp_torch.prior.machine_model import MachineModel
 
-    model, center, half = ares_model_parts(segment, lattice, quad_gain_half_width)
-    gains = tuple(f"{q}_gain" for q in ARES_CALIBRATED_QUADS)[: len(center) - 16]
+    model, center, half = ares_model_parts(
+        segment, lattice, quad_gain_half_width, screen_resolution
+    )
+    res = ("screen_resolution",) if screen_resolution > 0 else ()
+    gains = tuple(f"{q}_gain" for q in ARES_CALIBRATED_QUADS)[: len(center) - 16 - len(res)]
     t = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
     if t.shape != (4,):
         raise ValueError(f"the ARES target needs 4 numbers (m), got {tuple(t.shape)}")
@@ -172,8 +196,8 @@ def ares_machine_model(
         bounds=knob_bounds(lattice=lattice),
         observable_names=OBSERVABLE_NAMES,
         observable_units=("m",) * 4,
-        unknown_names=(*ARES_FITTED_INCOMING, *MISALIGNMENT_NAMES, *gains),
-        unknown_units=(*ARES_FITTED_UNITS, *("1",) * len(gains)),
+        unknown_names=(*ARES_FITTED_INCOMING, *MISALIGNMENT_NAMES, *gains, *res),
+        unknown_units=(*ARES_FITTED_UNITS, *("1",) * len(gains), *("m",) * len(res)),
         unknown_center=center,
         unknown_half_width=half,
         observe=model,
@@ -200,6 +224,7 @@ def build_ares_physics(
     obs_sd_floor: float = 1e-6,
     best_from: str | None = None,
     quad_gain_half_width: float = ARES_QUAD_GAIN_HALF_WIDTH,
+    screen_resolution: float = 0.0,
     **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
@@ -220,6 +245,8 @@ def build_ares_physics(
             (``ctx.noise > 0``), else ``"readings"``.
         quad_gain_half_width: half width of the quadrupoles' fitted gains (default 0.05; 0:
             no gains fitted, the 16 unknowns of the incoming beam and misalignments only).
+        screen_resolution: the largest screen resolution fitted (m; default 0: none fitted,
+            the sizes read are the beam's; > 0: one more unknown, :func:`ares_model_parts`).
         options: :class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` options
             (``fallback``: ``"nm"`` by default, ``"track"`` follows the machine).
     """
@@ -235,7 +262,9 @@ def build_ares_physics(
         best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
     options.setdefault("fallback", "nm")
     return TrackingModelOptimizer.from_machine_model(
-        ares_machine_model(target, quad_gain_half_width=quad_gain_half_width),
+        ares_machine_model(
+            target, quad_gain_half_width=quad_gain_half_width, screen_resolution=screen_resolution
+        ),
         bounds=ctx.bounds,
         obs_sd=obs_sd,
         best_from=best_from,
