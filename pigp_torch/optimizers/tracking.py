@@ -45,10 +45,16 @@ import torch
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
-from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
+from pigp_torch.optimizers._least_squares import fit_unknowns
+from pigp_torch.optimizers.model_fit import AGREE_SD, FIT_ITER, FittedModelOptimizer
+from pigp_torch.optimizers.play import play_path, setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
 
-__all__ = ["TrackingModelOptimizer"]
+__all__ = ["PLAY_TOL", "TrackingModelOptimizer"]
+
+#: An acting field asked within this fraction of its knob's range of the present one is the
+#: present one (no move: round-off does not reverse the play).
+PLAY_TOL = 1e-6
 
 
 class TrackingModelOptimizer(CheckedModelOptimizer):
@@ -87,6 +93,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         fallback="track",
         forgets=FORGET_GRID,
         offset_half_width: float | None = None,
+        play_half_width: float = 0.005,
         track_trust: float = 0.01,
         track_trust_min: float = 0.002,
         track_trust_max: float = 0.05,
@@ -106,6 +113,12 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         if half < 0:
             raise ValueError(f"offset_half_width must be >= 0, got {offset_half_width}")
         self.offset_half_width = half
+        if not play_half_width >= 0:
+            raise ValueError(f"play_half_width must be >= 0, got {play_half_width}")
+        lo, hi = self.bounds
+        self._play_half = play_half_width * (hi - lo) if play_half_width > 0 else None
+        self._play: tuple[torch.Tensor, ...] | None = None
+        self._n_off = 0
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
         self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
         self.tracking = False
@@ -123,7 +136,36 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         if self.filter is None or self.offset_half_width == 0:
             return None
         P = self.center.numel()
-        return self.filter.u[P:] * self.offset_half_width
+        return self.filter.u[P : P + self._n_off] * self.offset_half_width
+
+    @property
+    def play_width(self) -> torch.Tensor | None:
+        """The tracked play half widths of the knobs (``d``, knob units, >= 0); ``None`` before
+        tracking or without play."""
+        if self.filter is None or self._play_half is None:
+            return None
+        f, d = self.filter, self.dim
+        k = slice(-2 * d, -d)
+        return (f.center[k] + f.half_width[k] * f.u[k]).clamp_min(0.0)
+
+    def _refresh_play(self) -> None:
+        """The play path of every reading's setpoint at the tracked widths (:func:`play_path`)."""
+        if self._play_half is not None:
+            w, f = self.play_width, self.filter
+            g = (f.half_width[-self.dim :] * f.u[-self.dim :]).clamp(-w, w)
+            self._play = (*play_path(torch.stack(self.X), w, g), w, g)
+
+    def _rows(self, k: int) -> torch.Tensor:
+        """The filter's inputs of the last ``k`` readings: the setpoints, with play also
+        :math:`a_t = h_t - D_t \hat w - E_t \hat g`, :math:`D_t` and :math:`E_t` (``k x 4d``: the
+        acting field :math:`x_t + a_t + D_t w + E_t g` is linear in the widths :math:`w` and the
+        offsets :math:`g` before the run, :func:`~pigp_torch.optimizers.play.play_path`)."""
+        X = torch.stack(self.X[-k:])
+        if self._play is None:
+            return X
+        H, D, E, w, g = self._play
+        a = H[-k:] - D[-k:] * w - E[-k:] * g
+        return torch.cat([X, a, D[-k:], E[-k:]], -1)
 
     # -- the fit and the check ---------------------------------------------------------------
 
@@ -132,27 +174,37 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         NaN)."""
         if not self.tracking:
             return super()._fit()
-        self.filter.update(self.X[-1], self.O[-1])
+        self._refresh_play()
+        self.filter.update(self._rows(1)[0], self.O[-1])
+        self._refresh_play()
         return self.filter.u[: self.center.numel()].clone(), float("nan")
 
     def _fall_back(self, chi2: float, dof: int, p: float, k: int) -> None:
         if not self.track:
             return super()._fall_back(chi2, dof, p, k)
-        P, m = self.center.numel(), self.O[-1].numel()
+        P, m, d = self.center.numel(), self.O[-1].numel(), self.dim
         base, n_off = self.model, (m if self.offset_half_width > 0 else 0)
+        n_play = 2 * d if self._play_half is not None else 0
+        self._n_off = n_off
 
         def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+            if n_play:  # the acting fields x + a + D w + E g (rows of _rows)
+                w, g = theta[..., P + n_off : P + n_off + d], theta[..., P + n_off + d :]
+                X = X[..., :d] + X[..., d : 2 * d] + X[..., 2 * d : 3 * d] * w + X[..., 3 * d :] * g
             out = base(X, theta[..., :P])
-            return out + theta[..., P:] if n_off else out
+            return out + theta[..., P : P + n_off] if n_off else out
 
         H = information(self.model, torch.stack(self.X), self.center, self.half_width, self.u,
                         obs_sd=self.obs_sd, prior_sd=float(self.settings.prior_sd))  # fmt: skip
-        H = torch.block_diag(H, torch.eye(n_off, dtype=DTYPE) / float(self.settings.prior_sd) ** 2)
-        zeros = torch.zeros(n_off, dtype=DTYPE)
+        H = torch.block_diag(H, torch.eye(n_off + n_play, dtype=DTYPE) / self.settings.prior_sd**2)
+        zeros = torch.zeros(n_off + n_play, dtype=DTYPE)
+        half = torch.full((n_off,), self.offset_half_width, dtype=DTYPE)
+        if n_play:
+            half = torch.cat([half, self._play_half, self._play_half])
         self.filter = UnknownsFilter(
             model,
             torch.cat([self.center, zeros]),
-            torch.cat([self.half_width, torch.full_like(zeros, self.offset_half_width)]),
+            torch.cat([self.half_width, half]),
             torch.cat([self.u, zeros]),
             H=H,
             obs_sd=self.obs_sd,
@@ -160,6 +212,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             forgets=self.forgets,
         )
         self.tracking, self._failed = True, 0
+        if n_play:
+            self._refit_with_play()
         self.trust = self.track_trust[0]
         self.notify(
             "prior-check",
@@ -171,6 +225,25 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             dof=dof,
             p=p,
         )
+
+    def _refit_with_play(self, rounds: int = 3) -> None:
+        r"""The filter's start with play: ``rounds`` batch fits of the unknowns, offsets and
+        play widths to every reading so far (the play path refreshed at the widths of the fit
+        before: the clip events settle), the filter's information that of the last fit."""
+        f, O, n = self.filter, torch.stack(self.O), len(self.X)
+        ps = float(self.settings.prior_sd)
+        u = f.u
+        for _ in range(rounds):
+            self._refresh_play()
+            rows = self._rows(n)
+            u, _ = fit_unknowns(f.model, rows, O, f.center, f.half_width, obs_sd=self.obs_sd,
+                                prior_sd=ps, u0=u, max_iter=FIT_ITER)  # fmt: skip
+            H = information(f.model, rows, f.center, f.half_width, u, obs_sd=self.obs_sd, prior_sd=ps)
+            f.U = [u.clone() for _ in f.forgets]
+            f.L = [H - f.H0 for _ in f.forgets]
+            f.eta = [H @ u for _ in f.forgets]
+        self.u = u[: self.center.numel()].clone()
+        self._refresh_play()
 
     def tell(self, x, y: float, observables=None) -> None:
         """The checked model's tell (fit and check); while tracking: the filter's update, the
@@ -205,7 +278,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         """The prior check of the tracked model (with its offset) on the last
         ``check_window`` readings; a notice when it passes again after failing."""
         k = min(self.check_window, self.n_told)
-        X, O = torch.stack(self.X[-k:]), torch.stack(self.O[-k:])
+        X, O = self._rows(k), torch.stack(self.O[-k:])
         with torch.no_grad():
             chi2, dof, p = chi2_check(self.filter.model, X, O, self._filter_theta(), self.obs_sd)
         self.checks.append({"at_told": self.n_told, "chi2": chi2, "dof": dof, "p": p})
@@ -240,7 +313,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             return super()._search_box()
         lo, hi = self.bounds
         half = self.trust * (hi - lo)
-        x = self.X[-1]
+        x = self.X[-1] if self._play is None else self.X[-1] + self._play[0][-1]
         return torch.stack([torch.maximum(lo, x - half), torch.minimum(hi, x + half)])
 
     def _fit_change(self, theta: torch.Tensor) -> float:
@@ -256,16 +329,19 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
 
     def ask(self) -> torch.Tensor:
         """The checked model's ask; while tracking, the optimum of the model plus the tracked
-        offset in the trust region around the current setting."""
+        offset in the trust region around the current setting. With play the search is over
+        the acting fields around the present ones, and the ask is the setpoint that makes the
+        optimum's fields from the present state (:func:`~pigp_torch.optimizers.play.
+        setpoint_for`: past the play in the direction of the move)."""
         offset = self.offset
-        if offset is None:
+        if offset is None and self._play is None:
             x = super().ask()
             self._search_offset = None
             return x
         base = self.model
 
         def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-            return base(X, theta) + offset
+            return base(X, theta) + offset if offset is not None else base(X, theta)
 
         self.model = model
         try:
@@ -273,7 +349,13 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         finally:
             self.model = base
         self._search_offset = offset
-        return x
+        if self._play is None:
+            return x
+        H, w = self._play[0], self._play[3]
+        lo, hi = self.bounds
+        same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
+        x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
+        return torch.minimum(torch.maximum(x, lo), hi)
 
     def recommend(self) -> torch.Tensor:
         """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
@@ -297,4 +379,10 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         off = self.offset if self.offset is not None else torch.zeros(m, dtype=DTYPE)
         for n, v, u in zip(obs, off, obs_units, strict=True):
             out[f"{n}_offset"] = (float(v), u)
+        if self._play_half is not None:
+            w = self.play_width if self.filter is not None else torch.zeros(self.dim, dtype=DTYPE)
+            knobs = list(mm.knob_names) if mm is not None else [f"x{i}" for i in range(self.dim)]
+            knob_units = list(mm.knob_units) if mm is not None else [""] * self.dim
+            for n, v, u in zip(knobs, w, knob_units, strict=True):
+                out[f"{n}_play"] = (float(v), u)
         return out
