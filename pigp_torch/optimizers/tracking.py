@@ -43,18 +43,21 @@ from __future__ import annotations
 import torch
 
 from pigp_torch._utils import DTYPE
+from pigp_torch.optimizers._least_squares import fit_unknowns
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
-from pigp_torch.optimizers._least_squares import fit_unknowns
 from pigp_torch.optimizers.model_fit import AGREE_SD, FIT_ITER, FittedModelOptimizer
 from pigp_torch.optimizers.play import play_path, setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
 
-__all__ = ["PLAY_TOL", "TrackingModelOptimizer"]
+__all__ = ["PLAY_HOLD", "PLAY_TOL", "TrackingModelOptimizer"]
 
 #: An acting field asked within this fraction of its knob's range of the present one is the
 #: present one (no move: round-off does not reverse the play).
 PLAY_TOL = 1e-6
+#: Knobs asked to move by less than their play are held when the model's goal there is within
+#: this many noise sd of the ask's.
+PLAY_HOLD = 0.25
 
 
 class TrackingModelOptimizer(CheckedModelOptimizer):
@@ -94,6 +97,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         forgets=FORGET_GRID,
         offset_half_width: float | None = None,
         play_half_width: float = 0.005,
+        refit_every: int = 5,
         track_trust: float = 0.01,
         track_trust_min: float = 0.002,
         track_trust_max: float = 0.05,
@@ -119,6 +123,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         self._play_half = play_half_width * (hi - lo) if play_half_width > 0 else None
         self._play: tuple[torch.Tensor, ...] | None = None
         self._n_off = 0
+        self.refit_every = int(refit_every)
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
         self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
         self.tracking = False
@@ -156,7 +161,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             self._play = (*play_path(torch.stack(self.X), w, g), w, g)
 
     def _rows(self, k: int) -> torch.Tensor:
-        """The filter's inputs of the last ``k`` readings: the setpoints, with play also
+        r"""The filter's inputs of the last ``k`` readings: the setpoints, with play also
         :math:`a_t = h_t - D_t \hat w - E_t \hat g`, :math:`D_t` and :math:`E_t` (``k x 4d``: the
         acting field :math:`x_t + a_t + D_t w + E_t g` is linear in the widths :math:`w` and the
         offsets :math:`g` before the run, :func:`~pigp_torch.optimizers.play.play_path`)."""
@@ -176,6 +181,13 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             return super()._fit()
         self._refresh_play()
         self.filter.update(self._rows(1)[0], self.O[-1])
+        if self.refit_every and (self.n_tracked + 1) % self.refit_every == 0:
+            self._refresh_play()
+            n = len(self.X)
+            weights = torch.ones(n, dtype=DTYPE)
+            for step in self.steps:  # the readings before a step count step_forget
+                weights[:step] *= self.step_forget
+            self.filter.refit(self._rows(n), torch.stack(self.O), weights)
         self._refresh_play()
         return self.filter.u[: self.center.numel()].clone(), float("nan")
 
@@ -238,7 +250,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             rows = self._rows(n)
             u, _ = fit_unknowns(f.model, rows, O, f.center, f.half_width, obs_sd=self.obs_sd,
                                 prior_sd=ps, u0=u, max_iter=FIT_ITER)  # fmt: skip
-            H = information(f.model, rows, f.center, f.half_width, u, obs_sd=self.obs_sd, prior_sd=ps)
+            H = information(f.model, rows, f.center, f.half_width, u, obs_sd=self.obs_sd,
+                            prior_sd=ps)  # fmt: skip
             f.U = [u.clone() for _ in f.forgets]
             f.L = [H - f.H0 for _ in f.forgets]
             f.eta = [H @ u for _ in f.forgets]
@@ -346,6 +359,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         self.model = model
         try:
             x = FittedModelOptimizer.ask(self)
+            if self._play is not None:
+                x = self._hold_small_moves(x)
         finally:
             self.model = base
         self._search_offset = offset
@@ -356,6 +371,21 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
         x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
         return torch.minimum(torch.maximum(x, lo), hi)
+
+    def _hold_small_moves(self, y: torch.Tensor) -> torch.Tensor:
+        r"""The acting fields ``y`` asked, with the knobs asked to move by less than their play
+        held where they are when the model predicts the goal within ``PLAY_HOLD`` noise sd of
+        the ask's (a small move back costs a pass through the play, and a play known only
+        approximately makes it inexact)."""
+        H, w = self._play[0], self._play[3]
+        now = self.X[-1] + H[-1]
+        small = (y - now).abs() < w
+        if not bool(small.any()):
+            return y
+        hold = torch.where(small, now, y)
+        with torch.no_grad():
+            g = self.goal(self.model(torch.stack([y, hold]), self.theta.detach()))
+        return hold if bool(g[1] <= g[0] + PLAY_HOLD * self.obs_sd) else y
 
     def recommend(self) -> torch.Tensor:
         """The setting the model puts the optimum at now (``d``): while tracking, the ask (the

@@ -1,0 +1,149 @@
+"""Magnet play (backlash) from the optimizer's own setpoint path: the path's offsets against the
+simulated machines' play operator, their derivatives, the inverse, and the tracker's learned
+widths on a machine with play only."""
+
+from __future__ import annotations
+
+import torch
+
+from pigp_torch.machines.drift import PlayHysteresis
+from pigp_torch.optimizers.play import play_path, setpoint_for
+from pigp_torch.optimizers.tracking import TrackingModelOptimizer
+
+D = torch.float64
+WIDTH = torch.tensor([0.2, 10e-6, 0.05], dtype=D)
+BOUNDS = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
+TARGET = torch.tensor([0.5, -0.4], dtype=D)
+TOY_PLAY = torch.tensor([0.04, 0.06], dtype=D)
+
+
+def _random_path(n: int, seed: int) -> torch.Tensor:
+    """``n x 3`` setpoints: moves of 0 to 3 play widths each way (small ones stay in the play)."""
+    gen = torch.Generator().manual_seed(seed)
+    steps = (torch.rand(n, 3, generator=gen, dtype=D) * 6 - 3) * WIDTH
+    steps[torch.rand(n, 3, generator=gen, dtype=D) < 0.2] = 0.0
+    return torch.tensor([1.0, -2e-4, 0.3], dtype=D) + steps.cumsum(0)
+
+
+def test_the_play_path_equals_the_simulated_machines_operator_on_a_random_path():
+    """From the state y0 = x0 + g (g within the play), the offsets of play_path are the acting
+    fields of PlayHysteresis minus the setpoints at every reading, to round-off."""
+    X = _random_path(200, seed=1)
+    g = torch.tensor([-0.2, 4e-6, 0.05], dtype=D)
+    magnets = PlayHysteresis(WIDTH, X[0] + g)
+    acting = torch.stack([magnets.apply(x) for x in X])
+    H, _, _ = play_path(X, WIDTH, g)
+    scale = WIDTH * 1e-9
+    assert bool(((H - (acting - X)).abs() <= scale).all())
+    assert bool((H.abs() <= WIDTH * (1 + 1e-12)).all())
+    # moves over twice the play leave the offset at -sign(move) w whatever the state before
+    big = (X[1:] - X[:-1]).abs() > 2 * WIDTH
+    expected = -torch.sign(X[1:] - X[:-1]) * WIDTH
+    assert bool(big.any()) and torch.allclose(H[1:][big], expected.expand_as(H[1:])[big])
+
+
+def test_the_derivatives_of_the_play_path_are_its_finite_differences():
+    """h_t(w + dw, g + dg) - h_t(w, g) = D_t dw + E_t dg for steps too small to change a clip;
+    E_t is 1 before the first clip and 0 after it."""
+    X = _random_path(120, seed=2)
+    g = torch.tensor([0.05, -3e-6, 0.01], dtype=D)
+    H, Dw, Eg = play_path(X, WIDTH, g)
+    dw, dg = WIDTH * 1e-7, WIDTH * 3e-8
+    H2, _, _ = play_path(X, WIDTH + dw, g + dg)
+    assert torch.allclose(H2 - H, Dw * dw + Eg * dg, atol=float(WIDTH.min()) * 1e-12)
+    assert bool((Eg[0] == 1).all()) and bool((Eg[-1] == 0).all())
+    assert set(Dw.unique().tolist()) <= {-1.0, 0.0, 1.0}
+
+
+def test_the_setpoint_for_an_acting_field_reaches_it_from_any_state():
+    """setpoint_for inverts the play: applied to PlayHysteresis in its state, the acting fields
+    are the ones asked, up and down, and no move is asked for the present fields."""
+    gen = torch.Generator().manual_seed(3)
+    X = _random_path(30, seed=3)
+    magnets = PlayHysteresis(WIDTH, X[0])
+    for x in X:
+        magnets.apply(x)
+        h = magnets.y - x
+        target = magnets.y + (torch.rand(3, generator=gen, dtype=D) * 4 - 2) * WIDTH
+        x_new = setpoint_for(target, x, h, WIDTH)
+        assert torch.allclose(magnets.acting(x_new), target, atol=1e-12, rtol=0)
+    assert torch.equal(setpoint_for(magnets.y, X[-1], magnets.y - X[-1], WIDTH), X[-1])
+
+
+def _toy(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """o = (theta_0 x_0 + theta_1, theta_2 x_1)."""
+    return torch.stack([theta[..., 0] * X[:, 0] + theta[..., 1], theta[..., 2] * X[:, 1]], -1)
+
+
+def _toy_optimizer(**kw) -> TrackingModelOptimizer:
+    return TrackingModelOptimizer(
+        BOUNDS,
+        model=_toy,
+        goal=lambda o: ((o - TARGET).square() + 1e-12).sqrt().mean(-1),
+        residual=lambda o: o - TARGET,
+        theta_center=torch.tensor([1.0, 0.0, 1.0], dtype=D),
+        theta_half_width=torch.tensor([0.5, 0.5, 0.5], dtype=D),
+        obs_sd=0.001,
+        maximize=False,
+        **kw,
+    )
+
+
+def _play_run(opt, width, n: int = 60, path=None):
+    """The toy machine (unknowns 1.3, -0.2, 0.8) whose knobs act through play of half widths
+    ``width`` (state before the run: the middle of the play); the knobs follow ``path`` when
+    given, else the optimizer's asks. Returns the true MAE (to the target) of each reading."""
+    gen = torch.Generator().manual_seed(0)
+    theta = torch.tensor([1.3, -0.2, 0.8], dtype=D)
+    x = torch.zeros(2, dtype=D) if path is None else path[0]
+    magnets, mae = PlayHysteresis(width, x), []
+    for t in range(n):
+        true = _toy(magnets.apply(x)[None], theta)[0]
+        o = true + 0.001 * torch.randn(2, generator=gen, dtype=D)
+        opt.tell(x, float((o - TARGET).abs().mean()), observables=o)
+        mae.append(float((true - TARGET).abs().mean()))
+        x = opt.ask() if path is None else path[min(t + 1, n - 1)]
+    return mae
+
+
+def test_the_play_widths_are_learned_on_a_machine_with_play_only():
+    """Knobs on a random path with reversals, play 0.04 and 0.06 (4 % and 6 % of half the
+    range): the model without play fails the check, the tracker then learns each width within
+    5 % of it and predicts the readings to 3 noise sd."""
+    gen = torch.Generator().manual_seed(5)
+    path = (torch.rand(60, 2, generator=gen, dtype=D) * 1.6 - 0.8).to(D)
+    opt = _toy_optimizer(play_half_width=0.05)
+    _play_run(opt, TOY_PLAY, path=path)
+    assert opt.tracking
+    assert torch.allclose(opt.play_width, TOY_PLAY, rtol=0.05, atol=0), opt.play_width
+    assert float(opt.filter.last_z.abs().max()) < 3
+    tracked = opt.tracked()
+    assert tracked["x0_play"][0] == float(opt.play_width[0])
+
+
+def test_with_play_the_tracker_holds_the_target_where_it_fails_without():
+    """The optimizer's own asks on the toy machine with play: readings 30-59 within 0.005 (5
+    noise sd) of the target; the tracker without play (play_half_width=0) misses by more."""
+    mae = _play_run(_toy_optimizer(play_half_width=0.05), TOY_PLAY)
+    mae_none = _play_run(_toy_optimizer(play_half_width=0.0), TOY_PLAY)
+    late, late_none = (float(torch.tensor(m[30:]).median()) for m in (mae, mae_none))
+    assert late < 0.005 and late_none > 2 * late, (late, late_none)
+
+
+def test_a_vanishing_play_gives_the_tracker_without_play():
+    """w -> 0: with a play prior of 1e-12 of the range the asks and the tracked unknowns are
+    those of play_half_width=0 (the filter of the unknowns and offsets alone) to 1e-6."""
+    a, b = _toy_optimizer(play_half_width=1e-12), _toy_optimizer(play_half_width=0.0)
+    gen = torch.Generator().manual_seed(0)
+    x = xb = torch.zeros(2, dtype=D)
+    for t in range(40):
+        theta = torch.tensor([1.3, -0.2 + 0.01 * t, 0.8], dtype=D)
+        noise = 0.001 * torch.randn(2, generator=gen, dtype=D)
+        for opt, xo in ((a, x), (b, xb)):
+            o = _toy(xo[None], theta)[0] + noise
+            opt.tell(xo, float((o - TARGET).abs().mean()), observables=o)
+        x, xb = a.ask(), b.ask()
+        assert torch.allclose(x, xb, atol=1e-6, rtol=0), (t, x, xb)
+    assert a.tracking and b.tracking
+    assert torch.allclose(a.theta, b.theta, atol=1e-6, rtol=0)
+    assert torch.allclose(a.offset, b.offset, atol=1e-9, rtol=0)
