@@ -14,10 +14,23 @@ search: from then on the model **follows the machine**.
 
    fitted by :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter`: an information filter
    that forgets old readings at a rate learned from the one-step-ahead predictive likelihood
-   (time: the readings told). It starts from the batch fit and its information; the offset
-   starts at 0 with the prior half width ``offset_half_width`` (observable units; default 50
-   ``obs_sd``).
-2. **The best setting from the current estimate.** Each ask is the optimum of the goal of
+   (time: the readings told), relinearized every ``refit_every`` readings at the weighted batch
+   fit of all readings (a nonlinear model's old linearizations mislead it). It starts from a
+   batch fit of every reading so far (the offset with the prior half width
+   ``offset_half_width``, observable units, default 50 ``obs_sd``).
+2. **The acting fields from the optimizer's own setpoints.** Magnets with play (backlash) act
+   with :math:`y_t = x_t + h_t` where the offset :math:`h_t \in [-w, w]` follows the setpoint
+   path (:mod:`pigp_torch.optimizers.play`: a move past the play drags the field behind the
+   setpoint, a smaller one leaves it). The play half widths :math:`w` (one per knob) and the
+   offsets before the run are unknowns of the filter too (prior centred at 0 with half width
+   ``play_half_width`` of each knob's range, default 0.005; :math:`w = 0` is a magnet without
+   play; ``play_half_width=0``: no play modelled), the model reads the acting fields
+   :math:`M(x_t + h_t(w), \theta_t)`, and the search of the ask is over the acting fields, the ask
+   the setpoint that makes them from the present state (past the play in the direction of the
+   move; a knob asked to move by less than its play is held when the model loses less than
+   ``PLAY_HOLD`` noise sd by it). A law other than the play enters as what the offset and the
+   forgetting absorb.
+3. **The best setting from the current estimate.** Each ask is the optimum of the goal of
    :math:`M(x, \hat\theta_t) + \hat b_t` in the trust region around the current setting (the last
    reading's: a stale best reading does not hold it), found as :class:`~pigp_torch.optimizers.
    model_fit.FittedModelOptimizer`'s ask. The region doubles after a reading the filter
@@ -25,11 +38,12 @@ search: from then on the model **follows the machine**.
    before, and halves otherwise, within ``track_trust_min``, ``track_trust_max`` (fractions of
    each knob's range: the travel per reading is a safety rule). :meth:`recommend` is that
    optimum now.
-3. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
+4. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
-   ``cusum_h``): the filter then forgets what it learned from the readings before
+   ``cusum_h``), from ``check_window`` readings after the tracking started (the filter
+   settles first): the filter then forgets what it learned from the readings before
    (``step_forget``) and re-acquires from the next ones; a ``"step"`` notice says so.
-4. **The check returns to the model.** The prior check keeps running on the tracked model; the
+5. **The check returns to the model.** The prior check keeps running on the tracked model; the
    model is never abandoned, and the ``"model-restored"`` notice says when it explains the last
    ``check_window`` readings again.
 
@@ -43,24 +57,17 @@ from __future__ import annotations
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.optimizers._least_squares import fit_unknowns
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
-from pigp_torch.optimizers.model_fit import AGREE_SD, FIT_ITER, FittedModelOptimizer
-from pigp_torch.optimizers.play import play_path, setpoint_for
+from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
+from pigp_torch.optimizers.play import setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
+from pigp_torch.optimizers.tracking_play import PLAY_TOL, PlayState
 
-__all__ = ["PLAY_HOLD", "PLAY_TOL", "TrackingModelOptimizer"]
-
-#: An acting field asked within this fraction of its knob's range of the present one is the
-#: present one (no move: round-off does not reverse the play).
-PLAY_TOL = 1e-6
-#: Knobs asked to move by less than their play are held when the model's goal there is within
-#: this many noise sd of the ask's.
-PLAY_HOLD = 0.25
+__all__ = ["TrackingModelOptimizer"]
 
 
-class TrackingModelOptimizer(CheckedModelOptimizer):
+class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
     r"""A checked fitted model that follows the machine after a failed check (module
     docstring).
 
@@ -72,6 +79,10 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             :data:`~pigp_torch.optimizers.track_filter.FORGET_GRID`).
         offset_half_width: prior half width of the observables' offset (observable units;
             default 50 ``obs_sd``; 0: no offset, the unknowns alone are tracked).
+        play_half_width: prior half width of each knob's play, a fraction of its range
+            (default 0.005; 0: no play modelled).
+        refit_every: readings between relinearizations of the filter (default 5; 0: never,
+            and no batch fit at the start without play: the first version's filter).
         track_trust, track_trust_min, track_trust_max: the trust region while tracking (fraction
             of each knob's range; default 0.01, 0.002, 0.05).
         cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
@@ -122,6 +133,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         lo, hi = self.bounds
         self._play_half = play_half_width * (hi - lo) if play_half_width > 0 else None
         self._play: tuple[torch.Tensor, ...] | None = None
+        self._play_on = False
         self._n_off = 0
         self.refit_every = int(refit_every)
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
@@ -143,37 +155,6 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         P = self.center.numel()
         return self.filter.u[P : P + self._n_off] * self.offset_half_width
 
-    @property
-    def play_width(self) -> torch.Tensor | None:
-        """The tracked play half widths of the knobs (``d``, knob units, >= 0); ``None`` before
-        tracking or without play."""
-        if self.filter is None or self._play_half is None:
-            return None
-        f, d = self.filter, self.dim
-        k = slice(-2 * d, -d)
-        return (f.center[k] + f.half_width[k] * f.u[k]).clamp_min(0.0)
-
-    def _refresh_play(self) -> None:
-        """The play path of every reading's setpoint at the tracked widths (:func:`play_path`)."""
-        if self._play_half is not None:
-            w, f = self.play_width, self.filter
-            g = (f.half_width[-self.dim :] * f.u[-self.dim :]).clamp(-w, w)
-            self._play = (*play_path(torch.stack(self.X), w, g), w, g)
-
-    def _rows(self, k: int) -> torch.Tensor:
-        r"""The filter's inputs of the last ``k`` readings: the setpoints, with play also
-        :math:`a_t = h_t - D_t \hat w - E_t \hat g`, :math:`D_t` and :math:`E_t` (``k x 4d``: the
-        acting field :math:`x_t + a_t + D_t w + E_t g` is linear in the widths :math:`w` and the
-        offsets :math:`g` before the run, :func:`~pigp_torch.optimizers.play.play_path`)."""
-        X = torch.stack(self.X[-k:])
-        if self._play is None:
-            return X
-        H, D, E, w, g = self._play
-        a = H[-k:] - D[-k:] * w - E[-k:] * g
-        return torch.cat([X, a, D[-k:], E[-k:]], -1)
-
-    # -- the fit and the check ---------------------------------------------------------------
-
     def _fit(self) -> tuple[torch.Tensor, float]:
         """The checked model's fit; while tracking, the filter takes the new reading (cost
         NaN)."""
@@ -187,6 +168,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             weights = torch.ones(n, dtype=DTYPE)
             for step in self.steps:  # the readings before a step count step_forget
                 weights[:step] *= self.step_forget
+            if self._play is not None:
+                self._choose_play(weights)
             self.filter.refit(self._rows(n), torch.stack(self.O), weights)
         self._refresh_play()
         return self.filter.u[: self.center.numel()].clone(), float("nan")
@@ -224,8 +207,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             forgets=self.forgets,
         )
         self.tracking, self._failed = True, 0
-        if n_play:
-            self._refit_with_play()
+        if n_play or self.refit_every:
+            self._refit_start()
         self.trust = self.track_trust[0]
         self.notify(
             "prior-check",
@@ -237,26 +220,6 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             dof=dof,
             p=p,
         )
-
-    def _refit_with_play(self, rounds: int = 3) -> None:
-        r"""The filter's start with play: ``rounds`` batch fits of the unknowns, offsets and
-        play widths to every reading so far (the play path refreshed at the widths of the fit
-        before: the clip events settle), the filter's information that of the last fit."""
-        f, O, n = self.filter, torch.stack(self.O), len(self.X)
-        ps = float(self.settings.prior_sd)
-        u = f.u
-        for _ in range(rounds):
-            self._refresh_play()
-            rows = self._rows(n)
-            u, _ = fit_unknowns(f.model, rows, O, f.center, f.half_width, obs_sd=self.obs_sd,
-                                prior_sd=ps, u0=u, max_iter=FIT_ITER)  # fmt: skip
-            H = information(f.model, rows, f.center, f.half_width, u, obs_sd=self.obs_sd,
-                            prior_sd=ps)  # fmt: skip
-            f.U = [u.clone() for _ in f.forgets]
-            f.L = [H - f.H0 for _ in f.forgets]
-            f.eta = [H @ u for _ in f.forgets]
-        self.u = u[: self.center.numel()].clone()
-        self._refresh_play()
 
     def tell(self, x, y: float, observables=None) -> None:
         """The checked model's tell (fit and check); while tracking: the filter's update, the
@@ -272,7 +235,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         _, lo, hi = self.track_trust
         grow = better or bool((z.abs() <= AGREE_SD).all())
         self.trust = min(2 * trust, hi) if grow else max(trust / 2, lo)
-        self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
+        if self.n_tracked > self.check_window:  # the filter settles first
+            self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
         if self._cusum > self.cusum_h:
             self._cusum = 0.0
             self.steps.append(self.n_told)
@@ -326,7 +290,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             return super()._search_box()
         lo, hi = self.bounds
         half = self.trust * (hi - lo)
-        x = self.X[-1] if self._play is None else self.X[-1] + self._play[0][-1]
+        x = self.X[-1] if self._used_play is None else self.X[-1] + self._used_play[0][-1]
         return torch.stack([torch.maximum(lo, x - half), torch.minimum(hi, x + half)])
 
     def _fit_change(self, theta: torch.Tensor) -> float:
@@ -347,7 +311,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         optimum's fields from the present state (:func:`~pigp_torch.optimizers.play.
         setpoint_for`: past the play in the direction of the move)."""
         offset = self.offset
-        if offset is None and self._play is None:
+        if offset is None and self._used_play is None:
             x = super().ask()
             self._search_offset = None
             return x
@@ -359,33 +323,18 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         self.model = model
         try:
             x = FittedModelOptimizer.ask(self)
-            if self._play is not None:
+            if self._used_play is not None:
                 x = self._hold_small_moves(x)
         finally:
             self.model = base
         self._search_offset = offset
-        if self._play is None:
+        if self._used_play is None:
             return x
         H, w = self._play[0], self._play[3]
         lo, hi = self.bounds
         same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
         x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
         return torch.minimum(torch.maximum(x, lo), hi)
-
-    def _hold_small_moves(self, y: torch.Tensor) -> torch.Tensor:
-        r"""The acting fields ``y`` asked, with the knobs asked to move by less than their play
-        held where they are when the model predicts the goal within ``PLAY_HOLD`` noise sd of
-        the ask's (a small move back costs a pass through the play, and a play known only
-        approximately makes it inexact)."""
-        H, w = self._play[0], self._play[3]
-        now = self.X[-1] + H[-1]
-        small = (y - now).abs() < w
-        if not bool(small.any()):
-            return y
-        hold = torch.where(small, now, y)
-        with torch.no_grad():
-            g = self.goal(self.model(torch.stack([y, hold]), self.theta.detach()))
-        return hold if bool(g[1] <= g[0] + PLAY_HOLD * self.obs_sd) else y
 
     def recommend(self) -> torch.Tensor:
         """The setting the model puts the optimum at now (``d``): while tracking, the ask (the

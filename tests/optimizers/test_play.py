@@ -4,6 +4,7 @@ widths on a machine with play only."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from pigp_torch.machines.drift import PlayHysteresis
@@ -121,15 +122,6 @@ def test_the_play_widths_are_learned_on_a_machine_with_play_only():
     assert tracked["x0_play"][0] == float(opt.play_width[0])
 
 
-def test_with_play_the_tracker_holds_the_target_where_it_fails_without():
-    """The optimizer's own asks on the toy machine with play: readings 30-59 within 0.005 (5
-    noise sd) of the target; the tracker without play (play_half_width=0) misses by more."""
-    mae = _play_run(_toy_optimizer(play_half_width=0.05), TOY_PLAY)
-    mae_none = _play_run(_toy_optimizer(play_half_width=0.0), TOY_PLAY)
-    late, late_none = (float(torch.tensor(m[30:]).median()) for m in (mae, mae_none))
-    assert late < 0.005 and late_none > 2 * late, (late, late_none)
-
-
 def test_a_vanishing_play_gives_the_tracker_without_play():
     """w -> 0: with a play prior of 1e-12 of the range the asks and the tracked unknowns are
     those of play_half_width=0 (the filter of the unknowns and offsets alone) to 1e-6."""
@@ -147,3 +139,29 @@ def test_a_vanishing_play_gives_the_tracker_without_play():
     assert a.tracking and b.tracking
     assert torch.allclose(a.theta, b.theta, atol=1e-6, rtol=0)
     assert torch.allclose(a.offset, b.offset, atol=1e-9, rtol=0)
+
+
+@pytest.mark.slow
+def test_ares_tracking_with_play_holds_the_beam_on_a_hysteresis_machine():
+    """ARES trial 0 of the family ``hysteresis`` (play 0.2 1/m² on the quadrupoles, 10 µrad on
+    the correctors; draw seed 101), noise-free screen, 40 readings of ``ares-physics`` with
+    ``fallback: track``: the learned widths within 10 % of the true ones and the true MAE of
+    readings 36-39 under 12 µm (the model's optimum without hysteresis is 7.2 µm on this
+    trial). The tracker without the play model (``play_half_width: 0``, ``refit_every: 0``)
+    stays at 20.5-21.8 µm over these readings."""
+    from pigp_torch.machines import KINDS
+    from pigp_torch.machines.drift import drive
+    from pigp_torch.methods import METHODS, RunContext
+
+    machine = KINDS["ares-ea"].drift_machine(
+        family="hysteresis", seed=101, trial=0, objective="mae", noise=0.0
+    )
+    ctx = RunContext(machine=machine, seed=101, archive_size=0, noise=None, maximize=False)
+    opt = METHODS["ares-physics"].with_options(fallback="track").build(ctx)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(101)
+        _, true = drive(machine, opt, 40, set_back=False)
+    mae = (true - machine.target).abs().mean(-1) * 1e6
+    assert opt.tracking
+    assert torch.allclose(opt.play_width, machine.gaps.play, rtol=0.1, atol=0), opt.play_width
+    assert float(mae[36:].max()) < 12.0, mae[30:]

@@ -110,7 +110,7 @@ def test_a_drifting_machine_is_followed_where_the_hand_over_loses_it():
     theta_now = torch.tensor([1.3, -0.2 + 0.01 * 60, 0.8], dtype=D)
     assert float((_toy(x[None], theta_now)[0] - TARGET).abs().mean()) < 0.02
     tracked = tracking.tracked()
-    assert set(tracked) == {"u0", "u1", "u2", "o0_offset", "o1_offset"}
+    assert set(tracked) == {"u0", "u1", "u2", "o0_offset", "o1_offset", "x0_play", "x1_play"}
     # the tracked model (unknowns plus offset) predicts the machine of the last reading
     theta_hat = torch.tensor([tracked[f"u{i}"][0] for i in range(3)], dtype=D)
     offset = torch.tensor([tracked["o0_offset"][0], tracked["o1_offset"][0]], dtype=D)
