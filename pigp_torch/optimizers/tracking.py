@@ -40,8 +40,7 @@ search: from then on the model **follows the machine**.
    optimum now.
 4. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
-   ``cusum_h``), from ``check_window`` readings after the tracking started (the filter
-   settles first): the filter then forgets what it learned from the readings before
+   ``cusum_h``): the filter then forgets what it learned from the readings before
    (``step_forget``) and re-acquires from the next ones; a ``"step"`` notice says so.
 5. **The check returns to the model.** The prior check keeps running on the tracked model; the
    model is never abandoned, and the ``"model-restored"`` notice says when it explains the last
@@ -207,7 +206,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
             forgets=self.forgets,
         )
         self.tracking, self._failed = True, 0
-        if n_play or self.refit_every:
+        if n_play:
             self._refit_start()
         self.trust = self.track_trust[0]
         self.notify(
@@ -235,8 +234,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         _, lo, hi = self.track_trust
         grow = better or bool((z.abs() <= AGREE_SD).all())
         self.trust = min(2 * trust, hi) if grow else max(trust / 2, lo)
-        if self.n_tracked > self.check_window:  # the filter settles first
-            self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
+        self._cusum = max(0.0, self._cusum + float(z.square().mean()) - self.cusum_k)
         if self._cusum > self.cusum_h:
             self._cusum = 0.0
             self.steps.append(self.n_told)

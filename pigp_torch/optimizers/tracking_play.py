@@ -101,11 +101,13 @@ class PlayState:
     # -- the fit and the check ---------------------------------------------------------------
 
     def _refit_start(self, rounds: int = 3) -> None:
-        r"""The filter's start: ``rounds`` batch fits of the unknowns, offsets (and play) to
-        every reading so far (the play path refreshed at the widths of the fit before: the
-        clip events settle), the filter's information that of the last fit."""
+        r"""The filter's start with play: ``rounds`` batch fits of the unknowns, offsets and play
+        to every reading so far (the play path refreshed at the widths of the fit before: the
+        clip events settle); if the play is used (:meth:`_choose_play`) the filter starts from
+        the last fit and its information, else from the state it was given (the play unused)."""
         f, O, n = self.filter, torch.stack(self.O), len(self.X)
         ps = float(self.settings.prior_sd)
+        given = ([u.clone() for u in f.U], [L.clone() for L in f.L], [e.clone() for e in f.eta])
         u = f.u
         for _ in range(rounds):
             self._refresh_play()
@@ -117,17 +119,10 @@ class PlayState:
             f.U = [u.clone() for _ in f.forgets]
             f.L = [H - f.H0 for _ in f.forgets]
             f.eta = [H @ u for _ in f.forgets]
-        if self._play is not None:
-            self._choose_play()
-            if not self._play_on:  # the filter starts from the fit without play
-                rows = self._rows(n)
-                u, _ = fit_unknowns(f.model, rows, O, f.center, f.half_width, obs_sd=self.obs_sd,
-                                    prior_sd=ps, u0=u, max_iter=FIT_ITER)  # fmt: skip
-                H = information(f.model, rows, f.center, f.half_width, u, obs_sd=self.obs_sd,
-                                prior_sd=ps)  # fmt: skip
-                f.U, f.L = [u.clone() for _ in f.forgets], [H - f.H0 for _ in f.forgets]
-                f.eta = [H @ u for _ in f.forgets]
-        self.u = u[: self.center.numel()].clone()
+        self._choose_play()
+        if not self._play_on:
+            f.U, f.L, f.eta = given
+        self.u = f.u[: self.center.numel()].clone()
         self._refresh_play()
 
     def _hold_small_moves(self, y: torch.Tensor) -> torch.Tensor:

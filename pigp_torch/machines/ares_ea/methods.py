@@ -233,7 +233,7 @@ def build_ares_physics(
         obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
     if best_from is None:
         best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
-    options.setdefault("fallback", "nm")
+    options.setdefault("fallback", "track")
     return TrackingModelOptimizer.from_machine_model(
         ares_machine_model(target, quad_gain_half_width=quad_gain_half_width),
         bounds=ctx.bounds,
