@@ -189,16 +189,17 @@ def test_the_tracking_optimizer_runs_on_the_ring_model():
         assert tracked[f"{name}_offset"][1] == unit
 
 
-def test_ares_physics_hands_over_by_default_and_tracks_as_an_option():
-    """Not the default yet (docs/drift_families.md): ares-physics builds the tracking class with
-    the checked model's hand-over; ``fallback="track"`` follows the machine."""
+def test_ares_physics_tracks_by_default_and_hands_over_as_an_option():
+    """The default of ares-physics follows the machine (docs/drift_families.md), with the play
+    of every magnet modelled; ``fallback="nm"`` gives the former hand-over to Nelder-Mead."""
     from pigp_torch.machines import KINDS
     from pigp_torch.methods import METHODS, RunContext
 
     machine = KINDS["ares-ea"].simulator(trial=3, objective="mae")
     ctx = RunContext(machine=machine, noise=None, maximize=False)
     opt = METHODS["ares-physics"].build(ctx)
-    assert isinstance(opt, TrackingModelOptimizer) and not opt.track
-    tracking = METHODS["ares-physics"].with_options(fallback="track").build(ctx)
-    assert tracking.track
-    assert tracking.offset_half_width == pytest.approx(50e-6)  # 50 x the 1 um noise floor
+    assert isinstance(opt, TrackingModelOptimizer) and opt.track
+    assert opt.offset_half_width == pytest.approx(50e-6)  # 50 x the 1 um noise floor
+    assert torch.allclose(opt._play_half, 0.005 * (opt.bounds[1] - opt.bounds[0]))
+    handing = METHODS["ares-physics"].with_options(fallback="nm").build(ctx)
+    assert not handing.track

@@ -203,13 +203,13 @@ def build_ares_physics(
     **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
-    setting the fitted model's optimum for the machine's target inside a trust region, and a
-    model-free search once the model stops explaining the readings (``fallback="nm"``, the
-    default); with ``fallback="track"`` the unknowns and an offset of the four beam numbers are
-    tracked with forgetting instead and the tracked model's optimum is asked around the current
-    setting (:class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` of
-    :func:`ares_machine_model`; not the default yet: on the drift family it does not beat the
-    hand-over, docs/drift_families.md).
+    setting the fitted model's optimum for the machine's target inside a trust region; once the
+    model stops explaining the readings it follows the machine (``fallback="track"``, the
+    default): the unknowns, an offset of the four beam numbers and the play of each magnet are
+    tracked with forgetting and the tracked model's optimum is asked around the present acting
+    fields (:class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` of
+    :func:`ares_machine_model`, docs/drift_families.md); ``fallback="nm"`` hands the run over to
+    Nelder–Mead instead (the former default).
 
     Args:
         obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
@@ -221,7 +221,7 @@ def build_ares_physics(
         quad_gain_half_width: half width of the quadrupoles' fitted gains (default 0.05; 0:
             no gains fitted, the 16 unknowns of the incoming beam and misalignments only).
         options: :class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` options
-            (``fallback``: ``"nm"`` by default, ``"track"`` follows the machine).
+            (``fallback``: ``"track"`` by default, ``"nm"`` the hand-over).
     """
     from pigp_torch.optimizers.tracking import TrackingModelOptimizer
 
