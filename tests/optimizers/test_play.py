@@ -9,12 +9,11 @@ import torch
 
 from pigp_torch.machines.drift import PlayHysteresis
 from pigp_torch.optimizers.play import play_path, setpoint_for
-from pigp_torch.optimizers.tracking import TrackingModelOptimizer
+
+from .test_tracking import TARGET, _toy, _toy_optimizer
 
 D = torch.float64
 WIDTH = torch.tensor([0.2, 10e-6, 0.05], dtype=D)
-BOUNDS = torch.tensor([[-1.0, -1.0], [1.0, 1.0]], dtype=D)
-TARGET = torch.tensor([0.5, -0.4], dtype=D)
 TOY_PLAY = torch.tensor([0.04, 0.06], dtype=D)
 
 
@@ -69,25 +68,6 @@ def test_the_setpoint_for_an_acting_field_reaches_it_from_any_state():
         x_new = setpoint_for(target, x, h, WIDTH)
         assert torch.allclose(magnets.acting(x_new), target, atol=1e-12, rtol=0)
     assert torch.equal(setpoint_for(magnets.y, X[-1], magnets.y - X[-1], WIDTH), X[-1])
-
-
-def _toy(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """o = (theta_0 x_0 + theta_1, theta_2 x_1)."""
-    return torch.stack([theta[..., 0] * X[:, 0] + theta[..., 1], theta[..., 2] * X[:, 1]], -1)
-
-
-def _toy_optimizer(**kw) -> TrackingModelOptimizer:
-    return TrackingModelOptimizer(
-        BOUNDS,
-        model=_toy,
-        goal=lambda o: ((o - TARGET).square() + 1e-12).sqrt().mean(-1),
-        residual=lambda o: o - TARGET,
-        theta_center=torch.tensor([1.0, 0.0, 1.0], dtype=D),
-        theta_half_width=torch.tensor([0.5, 0.5, 0.5], dtype=D),
-        obs_sd=0.001,
-        maximize=False,
-        **kw,
-    )
 
 
 def _play_run(opt, width, n: int = 60, path=None):
