@@ -167,7 +167,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
             weights = torch.ones(n, dtype=DTYPE)
             for step in self.steps:  # the readings before a step count step_forget
                 weights[:step] *= self.step_forget
-            if self._play is not None:
+            if self._play is not None and not self._play_on:
                 self._choose_play(weights)
             self.filter.refit(self._rows(n), torch.stack(self.O), weights)
         self._refresh_play()

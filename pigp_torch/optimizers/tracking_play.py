@@ -70,13 +70,27 @@ class PlayState:
         a = H[-k:] - D[-k:] * w - E[-k:] * g
         return torch.cat([X, a, D[-k:], E[-k:]], -1)
 
+    def _rows_at(self, n: int, u: torch.Tensor) -> torch.Tensor:
+        """:meth:`_rows` of the last ``n`` readings with the play path at the widths and start
+        offsets of the normalized unknowns ``u`` (the filter's layout)."""
+        f, d = self.filter, self.dim
+        theta = f.center + f.half_width * u
+        w = theta[-2 * d : -d].clamp_min(0.0)
+        g = torch.minimum(torch.maximum(theta[-d:], -w), w)
+        H, D, E = play_path(torch.stack(self.X), w, g)
+        a = H - D * w - E * g
+        return torch.cat([torch.stack(self.X), a, D, E], -1)[-n:]
+
     def _choose_play(self, weights=None, holdout: int = 5) -> None:
         r"""Whether the play is used: the weighted batch fits (the filter's forgetting, reading
-        weights ``weights``) with and without it of all readings but the last ``holdout``,
-        scored by how well they predict those (the sum of the squared errors in noise sd); used
-        when the play takes ``PLAY_EXPLAINS`` of the error without it away, and at least
+        weights ``weights``) with and without it of all readings but the last ``holdout``
+        (with it: twice, the play path refreshed at the first fit's widths), scored by how well
+        they predict those (the sum of the squared errors in noise sd). The play is taken up
+        when it takes ``PLAY_EXPLAINS`` of the error without it away, and at least
         ``PLAY_EVIDENCE`` per play unknown (a law other than the play, or none, does not buy its
-        unknowns, which then fit the past only in part)."""
+        unknowns, which then fit the past only in part); once used it is kept (a property of
+        the magnets; its widths may still go to 0), the filters starting from the fit's widths
+        and start offsets. Not called while the play is used."""
         f, O, n = self.filter, torch.stack(self.O), len(self.X)
         if n <= holdout + 1:
             return
@@ -86,17 +100,29 @@ class PlayState:
         keep = w > 1e-6
         if int(keep.sum()) < holdout:  # too few readings (e.g. just after a step): no change
             return
+        ps = float(self.settings.prior_sd)
+
+        def fit(rows: torch.Tensor) -> torch.Tensor:
+            return fit_unknowns(f.model, rows[keep], O[keep], f.center, f.half_width,
+                                obs_sd=self.obs_sd, prior_sd=ps, u0=f.u, max_iter=5,
+                                weights=w[keep])[0]  # fmt: skip
+
+        u_on = fit(self._rows(n, True))
+        rows_on = self._rows_at(n, u_on)
+        u_on = fit(rows_on)
         cost = []
-        for on in (True, False):
-            rows = self._rows(n, on)
-            u, _ = fit_unknowns(f.model, rows[keep], O[keep], f.center, f.half_width,
-                                obs_sd=self.obs_sd, prior_sd=float(self.settings.prior_sd),
-                                u0=f.u, max_iter=5, weights=w[keep])  # fmt: skip
+        for rows, u in ((rows_on, u_on), (self._rows(n, False), None)):
+            u = fit(rows) if u is None else u
             with torch.no_grad():
                 pred = f.model(rows[-holdout:], f.center + f.half_width * u)
             cost.append(float(((O[-holdout:] - pred) / self.obs_sd).square().sum()))
         gain = cost[1] - cost[0]
-        self._play_on = gain > max(PLAY_EVIDENCE * 2 * self.dim, PLAY_EXPLAINS * cost[1])
+        if gain > max(PLAY_EVIDENCE * 2 * self.dim, PLAY_EXPLAINS * cost[1]):
+            self._play_on = True
+            k = slice(-2 * self.dim, None)
+            for u in f.U:
+                u[k] = u_on[k]
+            self._refresh_play()
 
     # -- the fit and the check ---------------------------------------------------------------
 
