@@ -15,9 +15,9 @@ search: from then on the model **follows the machine**.
    fitted by :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter`: an information filter
    that forgets old readings at a rate learned from the one-step-ahead predictive likelihood
    (time: the readings told), relinearized every ``refit_every`` readings at the weighted batch
-   fit of all readings (a nonlinear model's old linearizations mislead it). It starts from a
-   batch fit of every reading so far (the offset with the prior half width
-   ``offset_half_width``, observable units, default 50 ``obs_sd``).
+   fit of all readings (a nonlinear model's old linearizations mislead it). It starts from the
+   checked model's fit and information, the offset at 0 with the prior half width
+   ``offset_half_width`` (observable units, default 50 ``obs_sd``).
 2. **The acting fields from the optimizer's own setpoints.** Magnets with play (backlash) act
    with :math:`y_t = x_t + h_t` where the offset :math:`h_t \in [-w, w]` follows the setpoint
    path (:mod:`pigp_torch.optimizers.play`: a move past the play drags the field behind the
@@ -28,8 +28,11 @@ search: from then on the model **follows the machine**.
    :math:`M(x_t + h_t(w), \theta_t)`, and the search of the ask is over the acting fields, the ask
    the setpoint that makes them from the present state (past the play in the direction of the
    move; a knob asked to move by less than its play is held when the model loses less than
-   ``PLAY_HOLD`` noise sd by it). A law other than the play enters as what the offset and the
-   forgetting absorb.
+   ``PLAY_HOLD`` noise sd by it). Whether there is play at all is learned
+   (:meth:`~pigp_torch.optimizers.tracking_play.PlayState._choose_play`: the fits with and
+   without it predicting the last readings; until the play is taken up the acting fields are
+   the setpoints, and the filter starts from the batch fit with play once it is). A law other
+   than the play enters as what the offset and the forgetting absorb.
 3. **The best setting from the current estimate.** Each ask is the optimum of the goal of
    :math:`M(x, \hat\theta_t) + \hat b_t` in the trust region around the current setting (the last
    reading's: a stale best reading does not hold it), found as :class:`~pigp_torch.optimizers.
