@@ -127,8 +127,8 @@ def test_ares_tracking_with_play_holds_the_beam_on_a_hysteresis_machine():
     the correctors; draw seed 101), noise-free screen, 40 readings of ``ares-physics`` with
     its default tracking: the learned widths of Q2, CV, Q3, CH within 10 % of the true ones (Q1:
     not resolved in 40 readings) and the true MAE of readings 36-39 under 12 µm (the model's
-    optimum without hysteresis is 7.2 µm on this trial). The tracker without the play model (``play_half_width: 0``, ``refit_every: 0``)
-    stays at 20.5-21.8 µm over these readings."""
+    optimum without hysteresis is 7.2 µm on this trial). The first tracker (no play model, no
+    relinearization) stays at 20.5-21.8 µm over these readings."""
     from pigp_torch.machines import KINDS
     from pigp_torch.machines.drift import drive
     from pigp_torch.methods import METHODS, RunContext
