@@ -126,8 +126,8 @@ def test_ares_tracking_with_play_holds_the_beam_on_a_hysteresis_machine():
     """ARES trial 0 of the family ``hysteresis`` (play 0.2 1/m² on the quadrupoles, 10 µrad on
     the correctors; draw seed 101), noise-free screen, 40 readings of ``ares-physics`` with
     its default tracking: the learned widths of Q2, CV, Q3, CH within 10 % of the true ones (Q1:
-    not resolved in 40 readings) and the true MAE of readings 36-39 under 12 µm (the model's
-    optimum without hysteresis is 7.2 µm on this trial). The first tracker (no play model, no
+    not resolved in 40 readings) and the true MAE of readings 36-39 under 12 µm (the one-shot
+    method stays at 7.2 µm on this trial without hysteresis). The first tracker (no play model, no
     relinearization) stays at 20.5-21.8 µm over these readings."""
     from pigp_torch.machines import KINDS
     from pigp_torch.machines.drift import drive
