@@ -18,6 +18,13 @@ information form. Each reading :math:`(x_t, o_t)` (time :math:`t`: the readings 
    :math:`\eta = \eta^- + J^\top (o_t - M(x_t, \theta(u)) + J u) / s^2`,
    :math:`u \leftarrow (\Lambda + H_0)^{-1} \eta`.
 
+4. **relinearizes** now and then (:meth:`UnknownsFilter.refit`): the information of the past
+   readings was taken at the estimates of their time, which a nonlinear model then mispredicts;
+   a refit replaces each filter's state by the weighted batch fit of every reading so far
+   (Levenberg–Marquardt warm-started at the estimate, reading :math:`t` weighted
+   :math:`\lambda^{n-t}` times the caller's weights), with the information at that fit,
+   :math:`\Lambda = \sum_t \lambda^{n-t} J_t^\top J_t / s^2`, :math:`\eta = (\Lambda + H_0) u`.
+
 One filter runs per forgetting factor of a small grid (default 1, 0.99, 0.95, 0.9); the estimate
 used is the filter's with the largest score: the forgetting rate is learned from the one-step-ahead
 predictive likelihood (on a static machine the filter that forgets nothing predicts best). For a
@@ -33,7 +40,7 @@ from collections.abc import Callable
 import torch
 
 from pigp_torch._utils import DTYPE
-from pigp_torch.optimizers._least_squares import row_jacobian
+from pigp_torch.optimizers._least_squares import fit_unknowns, row_jacobian
 
 __all__ = ["FORGET_GRID", "UnknownsFilter", "information"]
 
@@ -144,3 +151,26 @@ class UnknownsFilter:
                 u = torch.linalg.solve(L_new + self.H0, eta_new)
             self.U[g], self.L[g], self.eta[g] = u, L_new, eta_new
         self.chosen = int(self.scores.argmax())
+
+    def refit(self, X, O, weights=None, *, max_iter: int = 5) -> None:
+        r"""Relinearize every filter at its weighted batch fit of all readings (module docstring,
+        step 4): ``X`` (``n x d``) and ``O`` (``n x m``) the readings in order, ``weights``
+        (``n``, default ones) multiplied by :math:`\lambda^{n-t}`; readings weighted under
+        1e-6 are left out; ``max_iter`` Levenberg–Marquardt iterations."""
+        X, O = torch.as_tensor(X, dtype=DTYPE), torch.as_tensor(O, dtype=DTYPE)
+        n = X.shape[0]
+        age = torch.arange(n - 1, -1, -1, dtype=DTYPE)
+        base = torch.ones(n, dtype=DTYPE)
+        if weights is not None:
+            base = torch.as_tensor(weights, dtype=DTYPE)
+        for g, lam in enumerate(self.forgets):
+            w = base * lam**age
+            keep = w > 1e-6
+            u, _ = fit_unknowns(self.model, X[keep], O[keep], self.center, self.half_width,
+                                obs_sd=self.obs_sd, prior_sd=self.prior_sd, u0=self.U[g],
+                                max_iter=max_iter, weights=w[keep])  # fmt: skip
+            theta = self.center + self.half_width * u
+            J = row_jacobian(self.model, X[keep], theta) * self.half_width  # N x m x P
+            J = (J * w[keep].sqrt()[:, None, None]).reshape(-1, J.shape[-1])
+            L = J.T @ J / self.obs_sd**2
+            self.U[g], self.L[g], self.eta[g] = u, L, (L + self.H0) @ u

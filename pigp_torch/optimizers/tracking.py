@@ -14,10 +14,26 @@ search: from then on the model **follows the machine**.
 
    fitted by :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter`: an information filter
    that forgets old readings at a rate learned from the one-step-ahead predictive likelihood
-   (time: the readings told). It starts from the batch fit and its information; the offset
-   starts at 0 with the prior half width ``offset_half_width`` (observable units; default 50
-   ``obs_sd``).
-2. **The best setting from the current estimate.** Each ask is the optimum of the goal of
+   (time: the readings told), relinearized every ``refit_every`` readings at the weighted batch
+   fit of all readings (a nonlinear model's old linearizations mislead it). It starts from the
+   checked model's fit and information, the offset at 0 with the prior half width
+   ``offset_half_width`` (observable units, default 50 ``obs_sd``).
+2. **The acting fields from the optimizer's own setpoints.** Magnets with play (backlash) act
+   with :math:`y_t = x_t + h_t` where the offset :math:`h_t \in [-w, w]` follows the setpoint
+   path (:mod:`pigp_torch.optimizers.play`: a move past the play drags the field behind the
+   setpoint, a smaller one leaves it). The play half widths :math:`w` (one per knob) and the
+   offsets before the run are unknowns of the filter too (prior centred at 0 with half width
+   ``play_half_width`` of each knob's range, default 0.005; :math:`w = 0` is a magnet without
+   play; ``play_half_width=0``: no play modelled), the model reads the acting fields
+   :math:`M(x_t + h_t(w), \theta_t)`, and the search of the ask is over the acting fields, the ask
+   the setpoint that makes them from the present state (past the play in the direction of the
+   move; a knob asked to move by less than its play is held when the model loses less than
+   ``PLAY_HOLD`` noise sd by it). Whether there is play at all is learned
+   (:meth:`~pigp_torch.optimizers.tracking_play.PlayState._choose_play`: the fits with and
+   without it predicting the last readings; until the play is taken up the acting fields are
+   the setpoints, and the filter starts from the batch fit with play once it is). A law other
+   than the play enters as what the offset and the forgetting absorb.
+3. **The best setting from the current estimate.** Each ask is the optimum of the goal of
    :math:`M(x, \hat\theta_t) + \hat b_t` in the trust region around the current setting (the last
    reading's: a stale best reading does not hold it), found as :class:`~pigp_torch.optimizers.
    model_fit.FittedModelOptimizer`'s ask. The region doubles after a reading the filter
@@ -25,11 +41,11 @@ search: from then on the model **follows the machine**.
    before, and halves otherwise, within ``track_trust_min``, ``track_trust_max`` (fractions of
    each knob's range: the travel per reading is a safety rule). :meth:`recommend` is that
    optimum now.
-3. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
+4. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
    ``cusum_h``): the filter then forgets what it learned from the readings before
    (``step_forget``) and re-acquires from the next ones; a ``"step"`` notice says so.
-4. **The check returns to the model.** The prior check keeps running on the tracked model; the
+5. **The check returns to the model.** The prior check keeps running on the tracked model; the
    model is never abandoned, and the ``"model-restored"`` notice says when it explains the last
    ``check_window`` readings again.
 
@@ -46,12 +62,14 @@ from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
 from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
+from pigp_torch.optimizers.play import setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
+from pigp_torch.optimizers.tracking_play import PLAY_TOL, PlayState
 
 __all__ = ["TrackingModelOptimizer"]
 
 
-class TrackingModelOptimizer(CheckedModelOptimizer):
+class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
     r"""A checked fitted model that follows the machine after a failed check (module
     docstring).
 
@@ -63,6 +81,10 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             :data:`~pigp_torch.optimizers.track_filter.FORGET_GRID`).
         offset_half_width: prior half width of the observables' offset (observable units;
             default 50 ``obs_sd``; 0: no offset, the unknowns alone are tracked).
+        play_half_width: prior half width of each knob's play, a fraction of its range
+            (default 0.005; 0: no play modelled).
+        refit_every: readings between relinearizations of the filter (default 5; 0: never,
+            and no batch fit at the start without play: the first version's filter).
         track_trust, track_trust_min, track_trust_max: the trust region while tracking (fraction
             of each knob's range; default 0.01, 0.002, 0.05).
         cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
@@ -87,6 +109,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         fallback="track",
         forgets=FORGET_GRID,
         offset_half_width: float | None = None,
+        play_half_width: float = 0.005,
+        refit_every: int = 5,
         track_trust: float = 0.01,
         track_trust_min: float = 0.002,
         track_trust_max: float = 0.05,
@@ -108,6 +132,14 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         if half < 0:
             raise ValueError(f"offset_half_width must be >= 0, got {offset_half_width}")
         self.offset_half_width = half
+        if not play_half_width >= 0:
+            raise ValueError(f"play_half_width must be >= 0, got {play_half_width}")
+        lo, hi = self.bounds
+        self._play_half = play_half_width * (hi - lo) if play_half_width > 0 else None
+        self._play: tuple[torch.Tensor, ...] | None = None
+        self._play_on = False
+        self._n_off = 0
+        self.refit_every = int(refit_every)
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
         self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
         self.tracking = False
@@ -125,36 +157,53 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         if self.filter is None or self.offset_half_width == 0:
             return None
         P = self.center.numel()
-        return self.filter.u[P:] * self.offset_half_width
-
-    # -- the fit and the check ---------------------------------------------------------------
+        return self.filter.u[P : P + self._n_off] * self.offset_half_width
 
     def _fit(self) -> tuple[torch.Tensor, float]:
         """The checked model's fit; while tracking, the filter takes the new reading (cost
         NaN)."""
         if not self.tracking:
             return super()._fit()
-        self.filter.update(self.X[-1], self.O[-1])
+        self._refresh_play()
+        self.filter.update(self._rows(1)[0], self.O[-1])
+        if self.refit_every and (self.n_tracked + 1) % self.refit_every == 0:
+            self._refresh_play()
+            n = len(self.X)
+            weights = torch.ones(n, dtype=DTYPE)
+            for step in self.steps:  # the readings before a step count step_forget
+                weights[:step] *= self.step_forget
+            if self._play is not None and not self._play_on:
+                self._choose_play(weights)
+            self.filter.refit(self._rows(n), torch.stack(self.O), weights)
+        self._refresh_play()
         return self.filter.u[: self.center.numel()].clone(), float("nan")
 
     def _fall_back(self, chi2: float, dof: int, p: float, k: int) -> None:
         if not self.track:
             return super()._fall_back(chi2, dof, p, k)
-        P, m = self.center.numel(), self.O[-1].numel()
+        P, m, d = self.center.numel(), self.O[-1].numel(), self.dim
         base, n_off = self.model, (m if self.offset_half_width > 0 else 0)
+        n_play = 2 * d if self._play_half is not None else 0
+        self._n_off = n_off
 
         def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+            if n_play:  # the acting fields x + a + D w + E g (rows of _rows)
+                w, g = theta[..., P + n_off : P + n_off + d], theta[..., P + n_off + d :]
+                X = X[..., :d] + X[..., d : 2 * d] + X[..., 2 * d : 3 * d] * w + X[..., 3 * d :] * g
             out = base(X, theta[..., :P])
-            return out + theta[..., P:] if n_off else out
+            return out + theta[..., P : P + n_off] if n_off else out
 
         H = information(self.model, torch.stack(self.X), self.center, self.half_width, self.u,
                         obs_sd=self.obs_sd, prior_sd=float(self.settings.prior_sd))  # fmt: skip
-        H = torch.block_diag(H, torch.eye(n_off, dtype=DTYPE) / float(self.settings.prior_sd) ** 2)
-        zeros = torch.zeros(n_off, dtype=DTYPE)
+        H = torch.block_diag(H, torch.eye(n_off + n_play, dtype=DTYPE) / self.settings.prior_sd**2)
+        zeros = torch.zeros(n_off + n_play, dtype=DTYPE)
+        half = torch.full((n_off,), self.offset_half_width, dtype=DTYPE)
+        if n_play:
+            half = torch.cat([half, self._play_half, self._play_half])
         self.filter = UnknownsFilter(
             model,
             torch.cat([self.center, zeros]),
-            torch.cat([self.half_width, torch.full_like(zeros, self.offset_half_width)]),
+            torch.cat([self.half_width, half]),
             torch.cat([self.u, zeros]),
             H=H,
             obs_sd=self.obs_sd,
@@ -162,6 +211,8 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             forgets=self.forgets,
         )
         self.tracking, self._failed = True, 0
+        if n_play:
+            self._refit_start()
         self.trust = self.track_trust[0]
         self.notify(
             "prior-check",
@@ -207,7 +258,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         """The prior check of the tracked model (with its offset) on the last
         ``check_window`` readings; a notice when it passes again after failing."""
         k = min(self.check_window, self.n_told)
-        X, O = torch.stack(self.X[-k:]), torch.stack(self.O[-k:])
+        X, O = self._rows(k), torch.stack(self.O[-k:])
         with torch.no_grad():
             chi2, dof, p = chi2_check(self.filter.model, X, O, self._filter_theta(), self.obs_sd)
         self.checks.append({"at_told": self.n_told, "chi2": chi2, "dof": dof, "p": p})
@@ -242,7 +293,7 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
             return super()._search_box()
         lo, hi = self.bounds
         half = self.trust * (hi - lo)
-        x = self.X[-1]
+        x = self.X[-1] if self._used_play is None else self.X[-1] + self._used_play[0][-1]
         return torch.stack([torch.maximum(lo, x - half), torch.minimum(hi, x + half)])
 
     def _fit_change(self, theta: torch.Tensor) -> float:
@@ -258,24 +309,35 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
 
     def ask(self) -> torch.Tensor:
         """The checked model's ask; while tracking, the optimum of the model plus the tracked
-        offset in the trust region around the current setting."""
+        offset in the trust region around the current setting. With play the search is over
+        the acting fields around the present ones, and the ask is the setpoint that makes the
+        optimum's fields from the present state (:func:`~pigp_torch.optimizers.play.
+        setpoint_for`: past the play in the direction of the move)."""
         offset = self.offset
-        if offset is None:
+        if offset is None and self._used_play is None:
             x = super().ask()
             self._search_offset = None
             return x
         base = self.model
 
         def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-            return base(X, theta) + offset
+            return base(X, theta) + offset if offset is not None else base(X, theta)
 
         self.model = model
         try:
             x = FittedModelOptimizer.ask(self)
+            if self._used_play is not None:
+                x = self._hold_small_moves(x)
         finally:
             self.model = base
         self._search_offset = offset
-        return x
+        if self._used_play is None:
+            return x
+        H, w = self._play[0], self._play[3]
+        lo, hi = self.bounds
+        same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
+        x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
+        return torch.minimum(torch.maximum(x, lo), hi)
 
     def recommend(self) -> torch.Tensor:
         """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
@@ -299,4 +361,10 @@ class TrackingModelOptimizer(CheckedModelOptimizer):
         off = self.offset if self.offset is not None else torch.zeros(m, dtype=DTYPE)
         for n, v, u in zip(obs, off, obs_units, strict=True):
             out[f"{n}_offset"] = (float(v), u)
+        if self._play_half is not None:
+            w = self.play_width if self.filter is not None else torch.zeros(self.dim, dtype=DTYPE)
+            knobs = list(mm.knob_names) if mm is not None else [f"x{i}" for i in range(self.dim)]
+            knob_units = list(mm.knob_units) if mm is not None else [""] * self.dim
+            for n, v, u in zip(knobs, w, knob_units, strict=True):
+                out[f"{n}_play"] = (float(v), u)
         return out

@@ -228,13 +228,13 @@ def build_ares_physics(
     **options,
 ):
     r"""``ares-physics``: the ARES model's unknowns fitted online to the screen readings, the next
-    setting the fitted model's optimum for the machine's target inside a trust region, and a
-    model-free search once the model stops explaining the readings (``fallback="nm"``, the
-    default); with ``fallback="track"`` the unknowns and an offset of the four beam numbers are
-    tracked with forgetting instead and the tracked model's optimum is asked around the current
-    setting (:class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` of
-    :func:`ares_machine_model`; not the default yet: on the drift family it does not beat the
-    hand-over, docs/drift_families.md).
+    setting the fitted model's optimum for the machine's target inside a trust region; once the
+    model stops explaining the readings it follows the machine (``fallback="track"``, the
+    default): the unknowns, an offset of the four beam numbers and the play of each magnet are
+    tracked with forgetting and the tracked model's optimum is asked around the present acting
+    fields (:class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` of
+    :func:`ares_machine_model`, docs/drift_families.md); ``fallback="nm"`` hands the run over to
+    Nelder–Mead instead (the former default).
 
     Args:
         obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
@@ -248,7 +248,7 @@ def build_ares_physics(
         screen_resolution: the largest screen resolution fitted (m; default 0: none fitted,
             the sizes read are the beam's; > 0: one more unknown, :func:`ares_model_parts`).
         options: :class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` options
-            (``fallback``: ``"nm"`` by default, ``"track"`` follows the machine).
+            (``fallback``: ``"track"`` by default, ``"nm"`` the hand-over).
     """
     from pigp_torch.optimizers.tracking import TrackingModelOptimizer
 
@@ -260,7 +260,7 @@ def build_ares_physics(
         obs_sd = max(float(ctx.noise or 0.0), float(obs_sd_floor))
     if best_from is None:
         best_from = "model" if (ctx.noise or 0.0) > 0 else "readings"
-    options.setdefault("fallback", "nm")
+    options.setdefault("fallback", "track")
     return TrackingModelOptimizer.from_machine_model(
         ares_machine_model(
             target, quad_gain_half_width=quad_gain_half_width, screen_resolution=screen_resolution
