@@ -22,7 +22,6 @@ import argparse
 import os
 import sys
 
-import numpy as np
 import pandas as pd
 import torch
 
@@ -102,7 +101,7 @@ def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, 
     ax.set_yscale("log" if kind == "ares" else "linear")
     ax.set_title(title)
     ax.legend(fontsize=8)
-    for ax, (name, true, ylabel) in zip(axes[1:, 0], pairs if track is not None else []):
+    for ax, (name, true, ylabel) in zip(axes[1:, 0], pairs[: rows - 1], strict=True):
         for who, style in ((name, "-"), (true, "--")):
             part = track[track.name == who] if who else None
             if part is not None and len(part):
@@ -141,7 +140,8 @@ def main(argv=None) -> int:
                 track = track_run(a.track, a.family, a.readings, a.prior)
                 if a.track_csv:
                     track.to_csv(a.track_csv, index=False)
-        title = f"{a.kind} family {a.family}" + (f", tracked: machine {a.track}" if track is not None else "")
+        title = f"{a.kind} family {a.family}"
+        title += f", tracked: machine {a.track}" if track is not None else ""
         draw(runs, a.kind, track, title, a.out)
     except (OSError, ValueError, KeyError) as err:
         print(f"error: {err}", file=sys.stderr)
