@@ -6,9 +6,10 @@ The top panel draws the per-reading tables written by ``benchmarks/drift_bench.p
 :math:`(f_t(x_t) - f_t(0)) / (f^*_t - f_t(0))` against the moving optimum. For SPEAR3,
 ``--track SEED`` also runs ``pigp-physics`` on that tuning machine of the family and draws what
 it tracks next to the truth: the fitted peak against the true moving optimum :math:`f^*_t`
-(mA/min), the fitted centre's travel from its first fit against the true optimum's travel
-:math:`\lVert\delta(t) - \delta(0)\rVert` (A), and the readings the fit remembers (its learned
-memory). ``--track-csv`` saves (or, when it exists, reuses) that run.
+(mA/min), the travel of its fitted optimum (``recommend()``) since reading
+:data:`TRAVEL_FROM` against the true optimum's, :math:`\lVert\delta(t) - \delta(100)\rVert`
+(A), and the readings the fit remembers (its learned memory). ``--track-csv`` saves (or, when
+it exists, reuses) that run.
 
     python benchmarks/drift_figure.py spear3 --csv ring.csv --family drift --track 101 \
         --prior docs/data/prior_spear3_seed0_exact.json --track-csv track101.csv \
@@ -31,11 +32,16 @@ COLUMNS = {"spear3": ("gain", "gain (fraction)"),
 SMOOTH = 10
 
 
+#: The reading from which the optimum's travel is drawn (the fit has converged by then).
+TRAVEL_FROM = 100
+
+
 class Recorder:
-    """An ask/tell optimizer that records its ``tracked()`` unknowns after every tell."""
+    """An ask/tell optimizer that records its ``tracked()`` unknowns and its ``recommend()``
+    (the fitted optimum, ``d``) after every tell."""
 
     def __init__(self, optimizer) -> None:
-        self.optimizer, self.rows = optimizer, []
+        self.optimizer, self.rows, self.optima = optimizer, [], []
 
     def ask(self):
         return self.optimizer.ask()
@@ -44,6 +50,7 @@ class Recorder:
         self.optimizer.tell(x, y, **kwargs)
         for name, (value, unit) in self.optimizer.tracked().items():
             self.rows.append((len(self.optimizer.Y) - 1, name, value, unit))
+        self.optima.append(self.optimizer.recommend().detach().clone())
 
     def recommend(self):
         return self.optimizer.recommend()
@@ -69,12 +76,16 @@ def track_run(seed: int, family: str, readings: int, prior_path: str | None) -> 
         recorder = Recorder(METHODS["pigp-physics"].build(ctx))
         X, _ = drive(machine, recorder, readings, set_back=False)
         _, f_star = gain_series(machine, X)
-    K = X.shape[1]
+    K, ref = X.shape[1], min(TRAVEL_FROM, readings - 1)
     delta = torch.stack([machine.theta_at(t)[:K] for t in range(readings)])
-    travel = torch.linalg.vector_norm(delta - delta[0], dim=1).numpy()
-    truth = [(t, "true_peak", float(f_star[t]), "mA/min") for t in range(readings)]
-    truth += [(t, "true_centre_moved", float(travel[t]), "A") for t in range(readings)]
-    return pd.DataFrame(recorder.rows + truth, columns=["reading", "name", "value", "unit"])
+    travel = torch.linalg.vector_norm(delta - delta[ref], dim=1).numpy()  # the optimum is x* - δ
+    fitted = torch.stack(recorder.optima)
+    moved = torch.linalg.vector_norm(fitted - fitted[ref], dim=1).numpy()
+    rows = [r for r in recorder.rows if r[1] != "centre_moved"]
+    rows += [(t, "optimum_moved", float(moved[t]), "A") for t in range(ref, readings)]
+    rows += [(t, "true_peak", float(f_star[t]), "mA/min") for t in range(readings)]
+    rows += [(t, "true_optimum_moved", float(travel[t]), "A") for t in range(ref, readings)]
+    return pd.DataFrame(rows, columns=["reading", "name", "value", "unit"])
 
 
 def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, out: str):
@@ -86,7 +97,7 @@ def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, 
 
     col, label = COLUMNS[kind]
     pairs = [("peak", "true_peak", "peak (mA/min)"),
-             ("centre_moved", "true_centre_moved", "optimum's travel (A)"),
+             ("optimum_moved", "true_optimum_moved", f"travel since {TRAVEL_FROM} (A)"),
              ("remembered", None, "readings remembered")]  # fmt: skip
     rows = 1 + (len(pairs) if track is not None else 0)
     fig, axes = plt.subplots(rows, 1, figsize=(8, 2.6 * rows), sharex=True, squeeze=False)
