@@ -28,8 +28,9 @@ A machine that drifts is followed by itself (no option): the posterior's learned
 readings (:math:`\infty`, every reading for good, on a static machine: its runs are unchanged),
 and restarts the memory at a step found by a CUSUM of the innovations. While it follows a drift
 the fitted centre and height move with the machine, the trust box sits at the told point of
-highest *current* posterior mean, and every third ask re-measures the fitted optimum
-(``track_schedule``). :meth:`PhysicsModelBO.recommend` is the fitted optimum now and
+highest *current* posterior mean, and every ask is the UCB with :math:`\beta = 1`, closer to
+the fitted optimum than the static machine's :math:`\beta = 4` (``track_schedule``,
+``track_beta``). :meth:`PhysicsModelBO.recommend` is the fitted optimum now and
 :meth:`PhysicsModelBO.tracked` the fitted peak, the centre's travel and the memory.
 """
 
@@ -91,7 +92,8 @@ class PhysicsModelBO(BayesianOptimizer):
             third ask; 0 turns it off).
         schedule: the acquisition of every ask as a :class:`~pigp_torch.optimizers.bo.Schedule`
             of the letters ``u`` (the UCB with ``beta``), ``m`` (the posterior mean, the UCB
-            with :math:`\beta = 0`: a visit of the fitted optimum), ``i`` (the centre
+            with :math:`\beta = 0`: a visit of the fitted optimum), ``w`` (the UCB with
+            ``track_beta``), ``i`` (the centre
             information), ``c`` (the same with the readings' errors correlated by the
             residual GP, :class:`~pigp_torch.optimizers.bo.CorrelatedCentreInformation`) and
             ``e`` (that, averaged over the Laplace posterior of the form's parameters,
@@ -101,9 +103,11 @@ class PhysicsModelBO(BayesianOptimizer):
             screened (docs/results.md), an option, not the default.
         track_schedule: the schedule (letters as ``schedule``) while the learned memory
             follows a drift (a finite memory or a detected step: ``forgetting`` below); default
-            ``"uum"``, two UCB asks and a visit of the fitted optimum: a drifting machine is
-            tracked by re-measuring where the current fit puts the optimum, and the
-            centre-information asks, which read away from the peak, cost gain there.
+            ``"w"``, the UCB with ``track_beta`` at every ask: a drifting machine is tracked by
+            reading near where the current fit puts the optimum, and the centre-information
+            asks, which read away from the peak, cost gain there (as do the wider UCB asks of
+            ``beta``).
+        track_beta: the UCB trade-off of the letter ``w`` (default 1: :math:`\mu + \sigma`).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
             one value or ``d``), or ``None`` (default: none). The search box is the trust box
@@ -193,6 +197,7 @@ class PhysicsModelBO(BayesianOptimizer):
         info_every: int = PHYSICS_DEFAULTS["info_every"],
         schedule: str | None = None,
         track_schedule: str = PHYSICS_DEFAULTS["track_schedule"],
+        track_beta: float = PHYSICS_DEFAULTS["track_beta"],
         seed: int = 0,
         travel_limit=None,
         maximize: bool = True,
@@ -207,6 +212,7 @@ class PhysicsModelBO(BayesianOptimizer):
         posterior = PhysicsFormPosterior(prior, bounds, **posterior_options)
         letters = {"u": ucb, "m": UCB(0.0), "i": CentreInformation()}
         letters.update(c=CorrelatedCentreInformation(), e=ExpectedCentreInformation())
+        letters["w"] = UCB(track_beta)
         if schedule is None:
             acquisition = Alternating(ucb, CentreInformation(), info_every)
         else:

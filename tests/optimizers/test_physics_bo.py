@@ -273,3 +273,26 @@ def test_the_notice_describes_every_default_stage_in_words():
     assert describe_stage({"center_std": 0.5, "noise": "auto", "shape_std": "x"}) == (
         "center_std = 0.5, noise = auto, shape_std = x"
     )
+
+
+def test_while_drifting_every_ask_is_the_ucb_with_track_beta():
+    """Static (memory infinite): the UCB with beta = 4 alternating with the centre information;
+    once the memory is finite (a drift followed) every ask is the UCB with track_beta = 1,
+    whose ask lies nearer the fitted optimum (a smaller sigma at the ask than beta = 4's)."""
+    prior = _prior(_precision(0))
+    bo = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4)
+    _run(bo, _machine(prior, MU), 12, prior.noise)
+    last = bo.parts.acquisition.last
+    assert type(last).__name__ == "CentreInformation" or last.beta == 4.0
+    assert not bo.parts.posterior.drifting
+    betas, sds = [], {}
+    for track_beta in (1.0, 4.0):
+        other = PhysicsModelBO(prior.bounds, prior, seed=0, n_starts=4, track_beta=track_beta)
+        _run(other, _machine(prior, MU), 12, prior.noise)
+        other.parts.posterior.forgetting.tau = 50.0  # as the memory's check sets on a drift
+        for _ in range(3):
+            x = other.ask()
+            betas.append((track_beta, other.parts.acquisition.last.beta))
+        sds[track_beta] = float(other.model.predict(x.unsqueeze(0))[1][0])
+    assert betas == [(1.0, 1.0)] * 3 + [(4.0, 4.0)] * 3
+    assert sds[1.0] < sds[4.0]

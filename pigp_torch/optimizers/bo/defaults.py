@@ -25,12 +25,13 @@ NEWTON_SEARCH_DEFAULTS = {"num_restarts": 10, "raw_samples": 256}
 
 #: :class:`PhysicsModelBO` (``pigp-physics``): UCB with :math:`\beta = 4`, trust box of half-width
 #: 0.6 around the told point of highest posterior mean, 8 Sobol starts of the multi-start
-#: L-BFGS-B, the centre-information ask every third ask; while following a drift two UCB asks
-#: and a visit of the fitted optimum (``track_schedule``).
+#: L-BFGS-B, the centre-information ask every third ask; while following a drift the UCB with
+#: :math:`\beta = 1` (:math:`\mu + \sigma`) at every ask (``track_schedule``, ``track_beta``).
 PHYSICS_DEFAULTS = {
     "beta": 4.0,
     "step_limit": 0.6,
     "n_starts": 8,
     "info_every": 3,
-    "track_schedule": "uum",
+    "track_schedule": "w",
+    "track_beta": 1.0,
 }
