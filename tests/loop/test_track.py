@@ -106,11 +106,17 @@ def test_max_readings_bounds_the_count():
 def test_a_stop_signal_leaves_the_knobs_at_the_estimate_then_re_raises(tmp_path, signum, raised):
     """The usual end of a shift: a signal at the 4th reading stops the run after it; the knobs
     go to the estimate (not the initial knobs), the signal is re-raised (the command's exit
-    code follows it) and the handlers are put back."""
+    code follows it) and the handlers are put back. SIGINT starts at Python's default handler
+    (a process started in the background by a shell without job control inherits it ignored,
+    and an ignored SIGINT stays ignored by design)."""
     previous = signal.getsignal(signal.SIGTERM)
     m = Drifting(on_read=lambda n: os.kill(os.getpid(), signum) if n == 4 else None)
-    with pytest.raises(raised):
-        track(m, FakeTracker(BOUNDS), 1000, time_limit_s=3600.0, log=tmp_path / "t.jsonl")
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(raised):
+            track(m, FakeTracker(BOUNDS), 1000, time_limit_s=3600.0, log=tmp_path / "t.jsonl")
+    finally:
+        signal.signal(signal.SIGINT, previous_int)
     assert m.get().tolist() == ESTIMATE
     assert signal.getsignal(signal.SIGTERM) is previous
     end = read_log(tmp_path / "t.jsonl").last_end
