@@ -14,7 +14,12 @@ it exists, reuses) that run.
     python benchmarks/drift_figure.py spear3 --csv ring.csv --family drift --track 101 \
         --prior docs/data/prior_spear3_seed0_exact.json --track-csv track101.csv \
         -o docs/figures/drift_spear3.png
-    python benchmarks/drift_figure.py ares --csv ares.csv -o docs/figures/drift_ares.png
+    python benchmarks/drift_figure.py ares --csv ares.csv --family drift --track 0 \
+        --readings 300 --track-csv track0.csv -o docs/figures/drift_ares.png
+
+For ARES, ``--track TRIAL`` runs ``ares-physics`` on that tuning trial of the family and draws
+the incoming beam's centroid it tracks (:math:`\mu_x, \mu_y` at the segment's entrance, µm)
+against the drifting truth, and the true MAE of that run.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ class Recorder:
 
     def __init__(self, optimizer) -> None:
         self.optimizer, self.rows, self.optima = optimizer, [], []
+        self.uses_observables = optimizer.uses_observables
 
     def ask(self):
         return self.optimizer.ask()
@@ -88,6 +94,51 @@ def track_run(seed: int, family: str, readings: int, prior_path: str | None) -> 
     return pd.DataFrame(rows, columns=["reading", "name", "value", "unit"])
 
 
+def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
+    """``ares-physics`` on tuning trial ``trial`` of ``family`` (draw seed 101, noise-free
+    screen, as ``drift_bench.py``): per reading the incoming centroid it tracks and the truth,
+    in µm (``reading, name, value, unit``)."""
+    from pigp_torch._utils import DTYPE, default_dtype
+    from pigp_torch.machines import KINDS
+    from pigp_torch.machines.ares_ea.methods import ares_objective_for
+    from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES
+    from pigp_torch.machines.drift import drive
+    from pigp_torch.methods import METHODS, RunContext
+
+    seed = 101
+    machine = KINDS["ares-ea"].drift_machine(
+        family=family, seed=seed, trial=trial, objective=ares_objective_for("ares-physics")
+    )
+    ctx = RunContext(machine=machine, prior=None, seed=seed + trial, archive_size=0,
+                     maximize=machine.maximize)  # fmt: skip
+    with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
+        torch.manual_seed(seed + trial)
+        recorder = Recorder(METHODS["ares-physics"].build(ctx))
+        _, true = drive(machine, recorder, readings, set_back=False)
+    mae = ((true - machine.target).abs().mean(-1) * 1e6).tolist()
+    rows = [(t, name, 1e6 * v, "µm") for t, name, v, _ in recorder.rows if name in TRACKED_ARES]
+    for name in TRACKED_ARES:
+        i = INCOMING_NAMES.index(name)
+        rows += [(t, f"true_{name}", 1e6 * float(machine.incoming_at(t)[i]), "µm")
+                 for t in range(readings)]  # fmt: skip
+    rows += [(t, "mae_true", m, "µm") for t, m in enumerate(mae)]
+    return pd.DataFrame(rows, columns=["reading", "name", "value", "unit"])
+
+
+#: The incoming-beam unknowns the ARES figure draws against the truth.
+TRACKED_ARES = ("mu_x", "mu_y")
+#: The tracked panels per kind: (the method's name, the truth's name, the axis label).
+PANELS = {
+    "spear3": (("peak", "true_peak", "peak (mA/min)"),
+               ("optimum_moved", "true_optimum_moved", f"travel since {TRAVEL_FROM} (A)"),
+               ("remembered", None, "readings remembered")),
+    "ares": (("mu_x", "true_mu_x", "incoming μx (µm)"),
+             ("mu_y", "true_mu_y", "incoming μy (µm)")),
+}  # fmt: skip
+#: The method whose run the tracked panels draw.
+TRACKER = {"spear3": "pigp-physics", "ares": "ares-physics"}
+
+
 def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, out: str):
     """Write the figure: the score per method against reading, then the tracked unknowns."""
     import matplotlib
@@ -96,9 +147,7 @@ def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, 
     import matplotlib.pyplot as plt
 
     col, label = COLUMNS[kind]
-    pairs = [("peak", "true_peak", "peak (mA/min)"),
-             ("optimum_moved", "true_optimum_moved", f"travel since {TRAVEL_FROM} (A)"),
-             ("remembered", None, "readings remembered")]  # fmt: skip
+    pairs = PANELS[kind]
     rows = 1 + (len(pairs) if track is not None else 0)
     fig, axes = plt.subplots(rows, 1, figsize=(8, 2.6 * rows), sharex=True, squeeze=False)
     ax = axes[0, 0]
@@ -116,7 +165,7 @@ def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, 
         for who, style in ((name, "-"), (true, "--")):
             part = track[track.name == who] if who else None
             if part is not None and len(part):
-                what = "pigp-physics" if who == name else "true"
+                what = TRACKER[kind] if who == name else "true"
                 ax.plot(part.reading, part.value, style, label=what)
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=8)
@@ -131,7 +180,12 @@ def main(argv=None) -> int:
     p.add_argument("kind", choices=sorted(COLUMNS))
     p.add_argument("--csv", nargs="+", required=True, help="tables of drift_bench.py --csv")
     p.add_argument("--family", default="drift", help="the family the tables ran (title)")
-    p.add_argument("--track", type=int, default=None, help="SPEAR3: tuning machine to track")
+    p.add_argument(
+        "--track",
+        type=int,
+        default=None,
+        help="the tuning machine (SPEAR3, 101+) or trial (ARES, 0-49) to track",
+    )
     p.add_argument("--readings", type=int, default=500)
     p.add_argument("--prior", default=None, help="SPEAR3: a saved prior for --track")
     p.add_argument("--track-csv", default=None, help="save / reuse the --track run")
@@ -142,17 +196,22 @@ def main(argv=None) -> int:
         if COLUMNS[a.kind][0] not in runs:
             raise ValueError(f"the tables have no column {COLUMNS[a.kind][0]!r} ({a.kind})")
         track = None
-        if a.track is not None and a.kind == "spear3":
-            if a.track in range(1, 25):
-                raise ValueError(f"machine {a.track} is held out: track a tuning machine (101+)")
+        if a.track is not None:
+            tuning = range(101, 10**6) if a.kind == "spear3" else range(0, 50)
+            if a.track not in tuning:
+                raise ValueError(f"{a.track} is held out: track a tuning one ({tuning.start}+,"
+                                 f" below {tuning.stop})")  # fmt: skip
             if a.track_csv and os.path.exists(a.track_csv):
                 track = pd.read_csv(a.track_csv)
-            else:
+            elif a.kind == "spear3":
                 track = track_run(a.track, a.family, a.readings, a.prior)
-                if a.track_csv:
-                    track.to_csv(a.track_csv, index=False)
+            else:
+                track = ares_track_run(a.track, a.family, a.readings)
+            if a.track_csv and not os.path.exists(a.track_csv):
+                track.to_csv(a.track_csv, index=False)
         title = f"{a.kind} family {a.family}"
-        title += f", tracked: machine {a.track}" if track is not None else ""
+        what = "machine" if a.kind == "spear3" else "trial"
+        title += f", tracked: {what} {a.track}" if track is not None else ""
         draw(runs, a.kind, track, title, a.out)
     except (OSError, ValueError, KeyError) as err:
         print(f"error: {err}", file=sys.stderr)

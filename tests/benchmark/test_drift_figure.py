@@ -47,3 +47,49 @@ def test_held_out_machines_and_the_wrong_column_are_refused(figure, tmp_path, ca
     assert figure.main(["ares", "--csv", csv, "-o", str(out)]) == 2
     assert "mae_true_um" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_an_ares_track_run_records_the_tracked_centroid_beside_the_drifting_truth(figure):
+    """A 12-reading ``ares-physics`` run on tuning trial 0 of the drift family: one true MAE per
+    reading, the true incoming centroid (µm) of every reading equal to the machine's own
+    ``incoming_at`` and moving (the family drifts), and the tracked centroid recorded in µm."""
+    from pigp_torch.machines import KINDS
+    from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES
+
+    track = figure.ares_track_run(0, "drift", 12)
+    machine = KINDS["ares-ea"].drift_machine(family="drift", seed=101, trial=0)
+    for name in ("mu_x", "mu_y"):
+        truth = track[track.name == f"true_{name}"].sort_values("reading")
+        assert truth.reading.tolist() == list(range(12))
+        i = INCOMING_NAMES.index(name)
+        expected = [1e6 * float(machine.incoming_at(t)[i]) for t in range(12)]
+        assert truth.value.tolist() == pytest.approx(expected, rel=1e-12, abs=1e-9)
+        assert truth.value.iloc[-1] != truth.value.iloc[0]
+        tracked = track[track.name == name]
+        assert len(tracked) > 0 and set(tracked.unit) == {"µm"}
+        assert tracked.value.abs().max() < 1e4  # µm, not m or nm: within the screen's reach
+    mae = track[track.name == "mae_true"]
+    assert len(mae) == 12 and (mae.value >= 0).all()
+
+
+def test_a_held_out_ares_trial_is_refused(figure, tmp_path, capsys):
+    """--track on an ARES report trial (50-149, or any 50+) exits 2 with one line."""
+    csv = _table(tmp_path / "ares.csv", column="mae_true_um")
+    out = tmp_path / "fig.png"
+    assert figure.main(["ares", "--csv", csv, "--track", "60", "-o", str(out)]) == 2
+    assert "held out" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.slow  # builds the drifting ring and its fast model: ~2.5 min on a loaded host
+def test_a_spear3_track_run_records_the_fit_beside_the_moving_truth(figure):
+    """A 12-reading ``pigp-physics`` run on tuning machine 101 of the drift family (the saved
+    exact-model prior): the true peak of every reading (mA/min, positive), the fitted peak and
+    the memory recorded per reading."""
+    from pathlib import Path
+
+    prior = Path(__file__).parents[2] / "docs" / "data" / "prior_spear3_seed0_exact.json"
+    track = figure.track_run(101, "drift", 12, str(prior))
+    truth = track[track.name == "true_peak"]
+    assert truth.reading.tolist() == list(range(12)) and (truth.value > 0).all()
+    assert set(truth.unit) == {"mA/min"}
+    assert {"peak", "remembered"} <= set(track.name)
