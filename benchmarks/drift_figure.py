@@ -18,8 +18,8 @@ it exists, reuses) that run.
         --readings 300 --track-csv track0.csv -o docs/figures/drift_ares.png
 
 For ARES, ``--track TRIAL`` runs ``ares-physics`` on that tuning trial of the family and draws
-the incoming beam's centroid it tracks (:math:`\mu_x, \mu_y` at the segment's entrance, µm)
-against the drifting truth, and the true MAE of that run.
+the offsets of the beam centroid at the screen its tracker carries beside the model (µm) over
+the true incoming centroid's drift since reading 0 (µm), and the true MAE of that run.
 """
 
 from __future__ import annotations
@@ -45,9 +45,10 @@ class Recorder:
     """An ask/tell optimizer that records its ``tracked()`` unknowns and its ``recommend()``
     (the fitted optimum, ``d``) after every tell."""
 
-    def __init__(self, optimizer) -> None:
+    def __init__(self, optimizer, optima: bool = True) -> None:
         self.optimizer, self.rows, self.optima = optimizer, [], []
         self.uses_observables = optimizer.uses_observables
+        self.record_optima = optima  # off where recommend() is an ask (the ARES tracker's)
 
     def ask(self):
         return self.optimizer.ask()
@@ -56,7 +57,8 @@ class Recorder:
         self.optimizer.tell(x, y, **kwargs)
         for name, (value, unit) in self.optimizer.tracked().items():
             self.rows.append((len(self.optimizer.Y) - 1, name, value, unit))
-        self.optima.append(self.optimizer.recommend().detach().clone())
+        if self.record_optima:
+            self.optima.append(self.optimizer.recommend().detach().clone())
 
     def recommend(self):
         return self.optimizer.recommend()
@@ -96,8 +98,12 @@ def track_run(seed: int, family: str, readings: int, prior_path: str | None) -> 
 
 def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
     """``ares-physics`` on tuning trial ``trial`` of ``family`` (draw seed 101, noise-free
-    screen, as ``drift_bench.py``): per reading the incoming centroid it tracks and the truth,
-    in µm (``reading, name, value, unit``)."""
+    screen, as ``drift_bench.py``): per reading the offsets of the beam centroid at the screen
+    that its tracker carries beside the model (``mu_x_offset``, ``mu_y_offset``), the true
+    incoming centroid's drift since reading 0 (``true_drift_mu_x``, ``true_drift_mu_y``) and the
+    run's true MAE, all in µm (``reading, name, value, unit``). The incoming centroid and the
+    screen's misalignment move the beam alike, so the tracker's fitted incoming centroid is not
+    the truth's; the offsets are what it follows."""
     from pigp_torch._utils import DTYPE, default_dtype
     from pigp_torch.machines import KINDS
     from pigp_torch.machines.ares_ea.methods import ares_objective_for
@@ -113,30 +119,35 @@ def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
                      maximize=machine.maximize)  # fmt: skip
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
-        recorder = Recorder(METHODS["ares-physics"].build(ctx))
+        recorder = Recorder(METHODS["ares-physics"].build(ctx), optima=False)
         _, true = drive(machine, recorder, readings, set_back=False)
     mae = ((true - machine.target).abs().mean(-1) * 1e6).tolist()
-    rows = [(t, name, 1e6 * v, "µm") for t, name, v, _ in recorder.rows if name in TRACKED_ARES]
+    names = {f"{n}_offset" for n in TRACKED_ARES}
+    rows = [(t, name, 1e6 * v, "µm") for t, name, v, _ in recorder.rows if name in names]
     for name in TRACKED_ARES:
         i = INCOMING_NAMES.index(name)
-        rows += [(t, f"true_{name}", 1e6 * float(machine.incoming_at(t)[i]), "µm")
-                 for t in range(readings)]  # fmt: skip
+        start = float(machine.incoming_at(0)[i])
+        rows += [(t, f"true_drift_{name}", 1e6 * (float(machine.incoming_at(t)[i]) - start),
+                  "µm") for t in range(readings)]  # fmt: skip
     rows += [(t, "mae_true", m, "µm") for t, m in enumerate(mae)]
     return pd.DataFrame(rows, columns=["reading", "name", "value", "unit"])
 
 
 #: The incoming-beam unknowns the ARES figure draws against the truth.
 TRACKED_ARES = ("mu_x", "mu_y")
-#: The tracked panels per kind: (the method's name, the truth's name, the axis label).
+#: The tracked panels per kind: (the method's series, its label, the truth's series, its
+#: label, the axis label).
 PANELS = {
-    "spear3": (("peak", "true_peak", "peak (mA/min)"),
-               ("optimum_moved", "true_optimum_moved", f"travel since {TRAVEL_FROM} (A)"),
-               ("remembered", None, "readings remembered")),
-    "ares": (("mu_x", "true_mu_x", "incoming μx (µm)"),
-             ("mu_y", "true_mu_y", "incoming μy (µm)")),
+    "spear3": (("peak", "pigp-physics", "true_peak", "true", "peak (mA/min)"),
+               ("optimum_moved", "pigp-physics", "true_optimum_moved", "true",
+                f"travel since {TRAVEL_FROM} (A)"),
+               ("remembered", "pigp-physics", None, None, "readings remembered")),
+    "ares": (("mu_x_offset", "offset at the screen (ares-physics)", "true_drift_mu_x",
+              "incoming drift since reading 0 (true)", "μx (µm)"),
+             ("mu_y_offset", "offset at the screen (ares-physics)", "true_drift_mu_y",
+              "incoming drift since reading 0 (true)", "μy (µm)"),
+             ("mae_true", "true MAE of this run", None, None, "MAE (µm)")),
 }  # fmt: skip
-#: The method whose run the tracked panels draw.
-TRACKER = {"spear3": "pigp-physics", "ares": "ares-physics"}
 
 
 def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, out: str):
@@ -161,11 +172,12 @@ def draw(runs: pd.DataFrame, kind: str, track: pd.DataFrame | None, title: str, 
     ax.set_yscale("log" if kind == "ares" else "linear")
     ax.set_title(title)
     ax.legend(fontsize=8)
-    for ax, (name, true, ylabel) in zip(axes[1:, 0], pairs[: rows - 1], strict=True):
-        for who, style in ((name, "-"), (true, "--")):
+    for ax, (name, label, true, true_label, ylabel) in zip(
+        axes[1:, 0], pairs[: rows - 1], strict=True
+    ):
+        for who, what, style in ((name, label, "-"), (true, true_label, "--")):
             part = track[track.name == who] if who else None
             if part is not None and len(part):
-                what = TRACKER[kind] if who == name else "true"
                 ax.plot(part.reading, part.value, style, label=what)
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=8)

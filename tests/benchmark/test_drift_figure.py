@@ -49,25 +49,26 @@ def test_held_out_machines_and_the_wrong_column_are_refused(figure, tmp_path, ca
     assert not out.exists()
 
 
-def test_an_ares_track_run_records_the_tracked_centroid_beside_the_drifting_truth(figure):
+def test_an_ares_track_run_records_the_tracked_offsets_beside_the_drifting_truth(figure):
     """A 12-reading ``ares-physics`` run on tuning trial 0 of the drift family: one true MAE per
-    reading, the true incoming centroid (µm) of every reading equal to the machine's own
-    ``incoming_at`` and moving (the family drifts), and the tracked centroid recorded in µm."""
+    reading, the true incoming centroid's drift since reading 0 (µm) equal to the machine's own
+    ``incoming_at`` differences and moving (the family drifts), and the tracker's offsets at the
+    screen recorded per reading in µm."""
     from pigp_torch.machines import KINDS
     from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES
 
     track = figure.ares_track_run(0, "drift", 12)
     machine = KINDS["ares-ea"].drift_machine(family="drift", seed=101, trial=0)
     for name in ("mu_x", "mu_y"):
-        truth = track[track.name == f"true_{name}"].sort_values("reading")
+        truth = track[track.name == f"true_drift_{name}"].sort_values("reading")
         assert truth.reading.tolist() == list(range(12))
         i = INCOMING_NAMES.index(name)
-        expected = [1e6 * float(machine.incoming_at(t)[i]) for t in range(12)]
+        start = float(machine.incoming_at(0)[i])
+        expected = [1e6 * (float(machine.incoming_at(t)[i]) - start) for t in range(12)]
         assert truth.value.tolist() == pytest.approx(expected, rel=1e-12, abs=1e-9)
-        assert truth.value.iloc[-1] != truth.value.iloc[0]
-        tracked = track[track.name == name]
-        assert len(tracked) > 0 and set(tracked.unit) == {"µm"}
-        assert tracked.value.abs().max() < 1e4  # µm, not m or nm: within the screen's reach
+        assert truth.value.iloc[0] == 0.0 and truth.value.iloc[-1] != 0.0
+        offsets = track[track.name == f"{name}_offset"]
+        assert 0 < len(offsets) <= 12 and set(offsets.unit) == {"µm"}
     mae = track[track.name == "mae_true"]
     assert len(mae) == 12 and (mae.value >= 0).all()
 
