@@ -116,7 +116,7 @@ def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
         family=family, seed=seed, trial=trial, objective=ares_objective_for("ares-physics")
     )
     ctx = RunContext(machine=machine, prior=None, seed=seed + trial, archive_size=0,
-                     maximize=machine.maximize)  # fmt: skip
+                     noise=None, maximize=machine.maximize)  # fmt: skip
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
         recorder = Recorder(METHODS["ares-physics"].build(ctx), optima=False)
