@@ -57,6 +57,12 @@ class Forgetting:
             standardized units; defaults 3 and 25: about two readings at :math:`|z| \approx 4.5`,
             or five at 3, in a row).
         floor: readings whose weight falls below it are left out (default 1e-4).
+        slopes: the log-height slopes :math:`s` compared (per reading; ``0`` first: a height
+            that does not change). With :math:`s \ne 0` the fit sees each remembered reading's
+            part above the background :math:`b` brought to the latest reading,
+            :math:`b + (y_i - b)\,e^{s (t - t_i)}` (:meth:`rescale`); each check scores every
+            pair :math:`(\tau, s)` and the pair :math:`(\infty, 0)` keeps its place unless
+            another leads by ``margin``. Default ``(0,)``: the height is not tracked.
     """
 
     def __init__(
@@ -71,6 +77,7 @@ class Forgetting:
         cusum_k: float = 3.0,
         cusum_h: float = 25.0,
         floor: float = 1e-4,
+        slopes=(0.0,),
     ) -> None:
         self.taus = tuple(float(t) for t in taus)
         if not self.taus or self.taus[0] != math.inf or min(self.taus) <= 0:
@@ -80,9 +87,12 @@ class Forgetting:
         self.start, self.every, self.block = int(start), int(every), int(block)
         self.discount, self.margin = float(discount), float(margin)
         self.cusum_k, self.cusum_h, self.floor = float(cusum_k), float(cusum_h), float(floor)
-        self.tau = math.inf
+        self.slopes = tuple(float(s) for s in slopes)
+        if not self.slopes or self.slopes[0] != 0.0:
+            raise ValueError(f"slopes must start with 0, got {slopes}")
+        self.tau, self.slope = math.inf, 0.0
         self.origin = 0  # the first reading remembered (a detected step moves it)
-        self.scores = dict.fromkeys(self.taus, 0.0)
+        self.scores = dict.fromkeys(self._pairs(), 0.0)
         self._cusum = 0.0
         self._excursion = 0  # where the current CUSUM excursion began
         self._n = 0
@@ -104,24 +114,43 @@ class Forgetting:
         """Whether a check of :math:`\\tau` runs at ``n`` readings."""
         return n - self.origin >= self.start and n % self.every == 0
 
+    def _pairs(self) -> list[tuple[float, float]]:
+        return [(tau, slope) for slope in self.slopes for tau in self.taus]
+
+    def rescale(self, Y: torch.Tensor, background: float, slope=None):
+        r"""Consecutive readings ``Y`` (``n``) brought to the time of the last one by the log-height
+        slope (default the learned one): :math:`b + (y_i - b)\,e^{s\,(t_\mathrm{last} -
+        t_i)}`; ``Y`` itself when the slope is 0."""
+        slope = self.slope if slope is None else slope
+        if slope == 0.0:
+            return Y
+        age = (len(Y) - 1) - torch.arange(len(Y), dtype=DTYPE)
+        return background + (Y - background) * torch.exp(slope * age)
+
     def select(self, model, X: torch.Tensor, Y: torch.Tensor) -> float:
-        r"""One check: score every :math:`\tau` on the last ``block`` readings of ``X``, ``Y``
-        (copies of ``model`` fitted to the readings before them), update :attr:`tau`; returns
-        it."""
+        r"""One check: score every pair :math:`(\tau, s)` on the last ``block`` readings of
+        ``X``, ``Y`` (copies of ``model`` fitted to the readings before them, the prediction
+        of reading :math:`t` scaled by :math:`e^{s (t - t_\mathrm{cut})}` above the
+        background), update :attr:`tau` and :attr:`slope`; returns :attr:`tau`."""
         n, cut = len(Y), len(Y) - self.block
-        for tau in self.taus:
+        b = float(model.f_inf if model.theta is None else model.background())
+        ahead = torch.arange(1, self.block + 1, dtype=DTYPE)
+        for tau, slope in self._pairs():
             first, w = self.weights(n, tau, end=cut)
             trial = copy.copy(model)
-            trial.fit(X[first:cut], Y[first:cut], weights=w)
+            trial.fit(X[first:cut], self.rescale(Y[first:cut], b, slope), weights=w)
             with torch.no_grad():
                 mu, sd = trial.predict(X[cut:])
+            if slope != 0.0:
+                k = torch.exp(slope * ahead)
+                mu, sd = b + (mu - b) * k, sd * k
             var = sd**2 + model.noise**2
             ll = -0.5 * (Y[cut:] - mu) ** 2 / var - 0.5 * torch.log(2 * math.pi * var)
             ll = float(ll.sum())
-            self.scores[tau] = self.discount * self.scores[tau] + ll
-        best = max(self.taus[1:], key=self.scores.get, default=math.inf)
-        lead = self.scores[best] - self.scores[math.inf] if best != math.inf else 0.0
-        self.tau = best if lead > self.margin else math.inf
+            self.scores[tau, slope] = self.discount * self.scores[tau, slope] + ll
+        best = max(self.scores, key=self.scores.get)
+        lead = self.scores[best] - self.scores[math.inf, 0.0]
+        self.tau, self.slope = best if lead > self.margin else (math.inf, 0.0)
         return self.tau
 
     def observe(self, model, x: torch.Tensor, y: float) -> bool:
@@ -142,7 +171,7 @@ class Forgetting:
             return False
         self.origin, level = self._excursion, self._cusum
         self._cusum = 0.0
-        self.scores = dict.fromkeys(self.taus, 0.0)
+        self.scores = dict.fromkeys(self._pairs(), 0.0)
         self.notices.append(
             dict(
                 kind="drift_step",

@@ -105,7 +105,8 @@ def test_learned_tau_is_infinite_on_a_static_machine_and_short_on_a_drifting_one
     assert static.tau == math.inf
     drifting = _memory_after(prior, 0.01)
     assert drifting.tau <= 100.0
-    assert drifting.scores[drifting.tau] - drifting.scores[math.inf] > drifting.margin
+    lead = drifting.scores[drifting.tau, 0.0] - drifting.scores[math.inf, 0.0]
+    assert lead > drifting.margin
 
 
 def test_a_step_is_detected_within_ten_readings_and_not_on_a_static_machine(prior):
