@@ -39,6 +39,9 @@ class PhysicsFormPosterior(PosteriorBase):
         forgetting: the learned memory of a drifting machine
             (:class:`~pigp_torch.models.forgetting.Forgetting`): ``True`` (default) its
             defaults, a dict its options, ``False`` none (every reading counts for good).
+            With a learned log-height slope :math:`s \ne 0` the fit sees the remembered
+            readings' part above the fitted background brought to the latest reading
+            (:meth:`~pigp_torch.models.forgetting.Forgetting.rescale`).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options.
     """
 
