@@ -104,11 +104,11 @@ class PhysicsModelBO(BayesianOptimizer):
             alternation of ``u`` and ``i``). ``"uue"`` is the best early-phase schedule
             screened (docs/results.md), an option, not the default.
         track_schedule: the schedule (letters as ``schedule``) while the learned memory
-            follows a drift (a finite memory or a detected step: ``forgetting`` below); default
-            ``"w"``, the UCB with ``track_beta`` at every ask: a drifting machine is tracked by
-            reading near where the current fit puts the optimum, and the centre-information
-            asks, which read away from the peak, cost gain there (as do the wider UCB asks of
-            ``beta``).
+            follows a drift (a finite memory, a changing height or a detected step:
+            ``forgetting`` below); default ``"w"``, the UCB with ``track_beta`` at every
+            ask: a drifting machine is tracked by reading near where the current fit puts
+            the optimum, and the centre-information asks, which read away from the peak,
+            cost gain there (as do the wider UCB asks of ``beta``).
         track_beta: the UCB trade-off of the letter ``w`` (default 1: :math:`\mu + \sigma`).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
