@@ -39,6 +39,9 @@ class PhysicsFormPosterior(PosteriorBase):
         forgetting: the learned memory of a drifting machine
             (:class:`~pigp_torch.models.forgetting.Forgetting`): ``True`` (default) its
             defaults, a dict its options, ``False`` none (every reading counts for good).
+            With a learned log-height slope :math:`s \ne 0` the fit sees the remembered
+            readings' part above the fitted background brought to the latest reading
+            (:meth:`~pigp_torch.models.forgetting.Forgetting.rescale`).
         **model_options: :class:`~pigp_torch.models.InverseSqrtPeakModel` options.
     """
 
@@ -110,6 +113,8 @@ class PhysicsFormPosterior(PosteriorBase):
                 memory.select(self.model, X, Y)
             first, w = memory.weights(len(Y))
             X, Y = (X, Y) if first == 0 else (X[first:], Y[first:])
+            if memory.slope != 0.0:  # the part above the background, brought to now
+                Y = memory.rescale(Y, float(self.model.background()))
         self.model.fit(X, Y) if w is None else self.model.fit(X, Y, weights=w)
         if self.prior_check:
             self._check_prior(X, Y)
@@ -163,6 +168,7 @@ class PhysicsFormPosterior(PosteriorBase):
             "log_evidence_ratio": self.log_evidence_ratio,
             "relaxed": self.relaxed,
             "memory_readings": None if self.forgetting is None else self.forgetting.tau,
+            "height_slope": None if self.forgetting is None else self.forgetting.slope,
         }
 
     def take_notices(self) -> list[dict]:
@@ -181,9 +187,12 @@ class PhysicsFormPosterior(PosteriorBase):
 
     @property
     def drifting(self) -> bool:
-        """Whether the learned memory follows a drift (a finite memory or a detected step)."""
+        """Whether the learned memory follows a drift (a finite memory, a detected step or a
+        changing height)."""
         memory = self.forgetting
-        return memory is not None and (memory.tau < math.inf or memory.origin > 0)
+        return memory is not None and (
+            memory.tau < math.inf or memory.origin > 0 or memory.slope != 0.0
+        )
 
     @property
     def relaxed(self) -> bool:

@@ -26,7 +26,9 @@ A machine that drifts is followed by itself (no option): the posterior's learned
 (:class:`~pigp_torch.models.forgetting.Forgetting`) inflates old readings' noise variance by
 :math:`e^{\mathrm{age}/\tau}` with :math:`\tau` chosen by the predictive likelihood of recent
 readings (:math:`\infty`, every reading for good, on a static machine: its runs are unchanged),
-and restarts the memory at a step found by a CUSUM of the innovations. While it follows a drift
+tracks a height that changes (a decaying current) by a log-height slope chosen with
+:math:`\tau`, so the centre keeps the longer memory its own motion allows, and restarts the
+memory at a step found by a CUSUM of the innovations. While it follows a drift
 the fitted centre and height move with the machine, the trust box sits at the told point of
 highest *current* posterior mean, and every ask is the UCB with :math:`\beta = 1`, closer to
 the fitted optimum than the static machine's :math:`\beta = 4` (``track_schedule``,
@@ -102,11 +104,11 @@ class PhysicsModelBO(BayesianOptimizer):
             alternation of ``u`` and ``i``). ``"uue"`` is the best early-phase schedule
             screened (docs/results.md), an option, not the default.
         track_schedule: the schedule (letters as ``schedule``) while the learned memory
-            follows a drift (a finite memory or a detected step: ``forgetting`` below); default
-            ``"w"``, the UCB with ``track_beta`` at every ask: a drifting machine is tracked by
-            reading near where the current fit puts the optimum, and the centre-information
-            asks, which read away from the peak, cost gain there (as do the wider UCB asks of
-            ``beta``).
+            follows a drift (a finite memory, a changing height or a detected step:
+            ``forgetting`` below); default ``"w"``, the UCB with ``track_beta`` at every
+            ask: a drifting machine is tracked by reading near where the current fit puts
+            the optimum, and the centre-information asks, which read away from the peak,
+            cost gain there (as do the wider UCB asks of ``beta``).
         track_beta: the UCB trade-off of the letter ``w`` (default 1: :math:`\mu + \sigma`).
         seed: base seed (the Sobol starts of step ``n`` use ``seed + n``).
         travel_limit: a hard step limit of the proposals (a fraction of each knob's half-range:
@@ -172,9 +174,10 @@ class PhysicsModelBO(BayesianOptimizer):
             (:class:`~pigp_torch.models.forgetting.Forgetting`: old readings' noise variance
             grows as :math:`e^{\mathrm{age}/\tau}`, :math:`\tau` chosen by the predictive
             likelihood of recent readings, :math:`\infty` on a static machine, where every
-            fit equals the one without it; a step is detected by a CUSUM of the innovations
-            and the memory restarts; on by default, ``False`` turns it off, a dict sets its
-            options).
+            fit equals the one without it; a changing height is followed by a log-height
+            slope per reading chosen with :math:`\tau`, 0 on a static machine; a step is
+            detected by a CUSUM of the innovations and the memory restarts; on by default,
+            ``False`` turns it off, a dict sets its options).
 
     After each ask, ``last_info`` holds ``center`` (trust-box centre), ``fitted_center``,
     ``fitted_peak``, ``acq_value``, ``inform``, ``misfit_z``, ``log_evidence_ratio``,

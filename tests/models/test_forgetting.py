@@ -105,7 +105,38 @@ def test_learned_tau_is_infinite_on_a_static_machine_and_short_on_a_drifting_one
     assert static.tau == math.inf
     drifting = _memory_after(prior, 0.01)
     assert drifting.tau <= 100.0
-    assert drifting.scores[drifting.tau] - drifting.scores[math.inf] > drifting.margin
+    lead = drifting.scores[drifting.tau, 0.0] - drifting.scores[math.inf, 0.0]
+    assert lead > drifting.margin
+
+
+def _decaying_memory(prior, slope: float, slopes, n: int = 90, seed: int = 0) -> Forgetting:
+    """Readings scattered around a fixed centre whose height above the background falls as
+    exp(slope * t); the memory (``slopes`` compared) checked every 10 readings from 60 on."""
+    model = InverseSqrtPeakModel(prior, prior.bounds)
+    theta = true_theta(model, [0.002, -0.001, 0.0, 0.001, 0.0], 0.7, 1.0)
+    X, Y = _readings(model, theta, n, seed, spread=0.006, noise=prior.noise)
+    Y = F_INF + (Y - F_INF) * torch.exp(slope * torch.arange(n, dtype=DT))
+    memory = Forgetting(slopes=slopes)
+    for m in range(60, n + 1, 10):
+        memory.select(model, X[:m], Y[:m])
+    return memory
+
+
+def test_a_falling_height_is_tracked_by_its_slope_and_a_static_one_is_not(prior):
+    """The part above the background brought to the latest reading is b + (y - b) e^{s age};
+    a height falling by 1 % per reading (the peak halves in 70 readings) is followed by the
+    slope of the grid nearest to it, a static one keeps (tau, s) = (inf, 0)."""
+    memory = Forgetting(slopes=(0.0, -0.01))
+    Y = torch.tensor([1.0, 2.0, 3.0], dtype=DT)
+    expected = 0.5 + (Y - 0.5) * torch.exp(-0.01 * torch.tensor([2.0, 1.0, 0.0], dtype=DT))
+    torch.testing.assert_close(memory.rescale(Y, 0.5, -0.01), expected, rtol=1e-15, atol=0)
+    assert memory.rescale(Y, 0.5) is Y  # slope 0 (the default): the readings themselves
+    grid = (0.0, -0.003, -0.01)
+    assert _decaying_memory(prior, -0.01, grid).slope == -0.01
+    static = _decaying_memory(prior, 0.0, grid)
+    assert (static.tau, static.slope) == (math.inf, 0.0)
+    with pytest.raises(ValueError, match="slopes must start with 0"):
+        Forgetting(slopes=(-0.01, 0.0))
 
 
 def test_a_step_is_detected_within_ten_readings_and_not_on_a_static_machine(prior):
