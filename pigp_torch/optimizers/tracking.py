@@ -60,13 +60,17 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.estimate import posterior_best
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
 from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
-from pigp_torch.optimizers.play import setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
-from pigp_torch.optimizers.tracking_play import PLAY_TOL, PlayState
+from pigp_torch.optimizers.tracking_play import PlayState
 
-__all__ = ["TrackingModelOptimizer"]
+__all__ = ["END_MIN", "END_WINDOW", "TrackingModelOptimizer"]
+
+#: The readings :meth:`TrackingModelOptimizer.recommend` chooses from: at most ``END_WINDOW``,
+#: at least ``END_MIN`` (fewer only when fewer were tracked).
+END_MIN, END_WINDOW = 5, 20
 
 
 class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
@@ -90,6 +94,8 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
             of a few noise sd does not alarm, a jump of 10 does at once) and the weight left to
             the readings before a step (default 0.01).
+        end: :meth:`recommend` while tracking: ``"recent"`` (default; the best GP posterior
+            mean among the recent readings) or ``"now"`` (the optimum of the tracked model now).
         options: :class:`CheckedModelOptimizer` arguments (``check_window``, ``check_alpha``, ...,
             and :class:`FittedModelOptimizer`'s).
 
@@ -117,6 +123,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_k: float = 10.0,
         cusum_h: float = 100.0,
         step_forget: float = 0.01,
+        end: str = "recent",
         **options,
     ) -> None:
         self.track = isinstance(fallback, str) and fallback == "track"
@@ -142,6 +149,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         self.refit_every = int(refit_every)
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
         self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
+        if end not in ("recent", "now"):
+            raise ValueError(f"end must be 'recent' or 'now', got {end!r}")
+        self.end = end
         self.tracking = False
         self.filter: UnknownsFilter | None = None
         self.steps: list[int] = []
@@ -331,19 +341,29 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         finally:
             self.model = base
         self._search_offset = offset
-        if self._used_play is None:
-            return x
-        H, w = self._play[0], self._play[3]
-        lo, hi = self.bounds
-        same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
-        x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
-        return torch.minimum(torch.maximum(x, lo), hi)
+        return x if self._used_play is None else self._setpoint_for_fields(x)
 
     def recommend(self) -> torch.Tensor:
-        """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
-        optimum of the tracked model, plus the offset while it is on, around the current
-        setting); before, the checked model's (the one-shot behaviour)."""
-        return self.ask() if self.tracking else super().recommend()
+        r"""The setting the evidence puts the optimum at (``d``). Before tracking, the checked
+        model's (the one-shot behaviour). While tracking (``end="recent"``): of the last
+        :math:`k` readings, the one with the best posterior mean of a GP on their scalar
+        readings (:func:`~pigp_torch.optimizers.estimate.posterior_best`: noisy readings are
+        averaged, exact ones interpolated), :math:`k = \min(n_{tracked}, \max(5,
+        \min(20, 1 / (1 - \lambda))))` with the filter's learned forgetting :math:`\lambda`
+        (a drifting machine's memory is short, a static one's 20 readings); the setpoint that
+        makes that reading's acting fields from the present state (with play: past the play
+        in the direction of the move). ``end="now"``: the ask (the tracked model's optimum
+        around the current setting)."""
+        if not self.tracking:
+            return super().recommend()
+        if self.end == "now":
+            return self.ask()
+        lam = self.filter.forget
+        memory = END_WINDOW if lam >= 1 else round(1 / (1 - lam))
+        k = min(self.n_tracked, max(END_MIN, min(END_WINDOW, memory)))
+        X, Y = torch.stack(self.X[-k:]), torch.tensor(self.Y[-k:], dtype=DTYPE)
+        i = len(self.X) - k + posterior_best(X, Y, self.bounds, maximize=self.maximize)
+        return self._setpoint_of(i)
 
     def tracked(self) -> dict[str, tuple[float, str]]:
         """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while
