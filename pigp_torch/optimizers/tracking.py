@@ -60,17 +60,17 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
-from pigp_torch.optimizers.estimate import posterior_best
+from pigp_torch.optimizers.estimate import posterior_fit
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
 from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
 from pigp_torch.optimizers.tracking_play import PlayState
 
-__all__ = ["END_MIN", "END_WINDOW", "TrackingModelOptimizer"]
+__all__ = ["END_NOISE", "END_WINDOW", "TrackingModelOptimizer"]
 
-#: The readings :meth:`TrackingModelOptimizer.recommend` chooses from: at most ``END_WINDOW``,
-#: at least ``END_MIN`` (fewer only when fewer were tracked).
-END_MIN, END_WINDOW = 5, 20
+#: :meth:`TrackingModelOptimizer.recommend` while tracking: the last readings it looks at, and
+#: the multiple of the stated noise above which their scatter makes it choose among them.
+END_WINDOW, END_NOISE = 20, 4.0
 
 
 class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
@@ -94,8 +94,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
             of a few noise sd does not alarm, a jump of 10 does at once) and the weight left to
             the readings before a step (default 0.01).
-        end: :meth:`recommend` while tracking: ``"recent"`` (default; the best GP posterior
-            mean among the recent readings) or ``"now"`` (the optimum of the tracked model now).
+        end: :meth:`recommend` while tracking: ``"recent"`` (default: the best GP posterior
+            mean among the recent readings when they scatter more than stated, else the optimum
+            of the tracked model now) or ``"now"`` (always the optimum now).
         options: :class:`CheckedModelOptimizer` arguments (``check_window``, ``check_alpha``, ...,
             and :class:`FittedModelOptimizer`'s).
 
@@ -345,25 +346,25 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
 
     def recommend(self) -> torch.Tensor:
         r"""The setting the evidence puts the optimum at (``d``). Before tracking, the checked
-        model's (the one-shot behaviour). While tracking (``end="recent"``): of the last
-        :math:`k` readings, the one with the best posterior mean of a GP on their scalar
-        readings (:func:`~pigp_torch.optimizers.estimate.posterior_best`: noisy readings are
-        averaged, exact ones interpolated), :math:`k = \min(n_{tracked}, \max(5,
-        \min(20, 1 / (1 - \lambda))))` with the filter's learned forgetting :math:`\lambda`
-        (a drifting machine's memory is short, a static one's 20 readings); the setpoint that
-        makes that reading's acting fields from the present state (with play: past the play
-        in the direction of the move). ``end="now"``: the ask (the tracked model's optimum
-        around the current setting)."""
+        model's (the one-shot behaviour). While tracking, the ask (the tracked model's optimum
+        around the current setting) unless the readings scatter more than stated: when a GP on
+        the scalar readings of the last :math:`k = \min(n_{tracked}, 20)` (``END_WINDOW``)
+        readings fits them with a noise sd over ``END_NOISE`` times the stated noise
+        (:func:`~pigp_torch.optimizers.estimate.posterior_fit`; the stated noise is of each
+        observable, a goal such as a mean absolute error scatters by about as much), the model
+        has been chasing single readings: the setting of the recent reading with the best GP
+        posterior mean instead (noisy readings averaged), set from the present state (with
+        play: past the play in the direction of the move). ``end="now"``: always the ask."""
         if not self.tracking:
             return super().recommend()
-        if self.end == "now":
+        k = min(self.n_tracked, END_WINDOW)
+        if self.end == "now" or k < 3:
             return self.ask()
-        lam = self.filter.forget
-        memory = END_WINDOW if lam >= 1 else round(1 / (1 - lam))
-        k = min(self.n_tracked, max(END_MIN, min(END_WINDOW, memory)))
         X, Y = torch.stack(self.X[-k:]), torch.tensor(self.Y[-k:], dtype=DTYPE)
-        i = len(self.X) - k + posterior_best(X, Y, self.bounds, maximize=self.maximize)
-        return self._setpoint_of(i)
+        i, noise = posterior_fit(X, Y, self.bounds, maximize=self.maximize, k=k)
+        if noise <= END_NOISE * self.obs_sd:
+            return self.ask()
+        return self._setpoint_of(len(self.X) - k + i)
 
     def tracked(self) -> dict[str, tuple[float, str]]:
         """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while
