@@ -70,7 +70,7 @@ __all__ = ["END_NOISE", "END_WINDOW", "TrackingModelOptimizer"]
 
 #: :meth:`TrackingModelOptimizer.recommend` while tracking: the last readings it looks at, and
 #: the multiple of the stated noise above which their scatter makes it choose among them.
-END_WINDOW, END_NOISE = 20, 4.0
+END_WINDOW, END_NOISE = 10, 4.0
 
 
 class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
@@ -348,7 +348,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         r"""The setting the evidence puts the optimum at (``d``). Before tracking, the checked
         model's (the one-shot behaviour). While tracking, the ask (the tracked model's optimum
         around the current setting) unless the readings scatter more than stated: when a GP on
-        the scalar readings of the last :math:`k = \min(n_{tracked}, 20)` (``END_WINDOW``)
+        the scalar readings of the last :math:`k = \min(n_{tracked}, 10)` (``END_WINDOW``)
         readings fits them with a noise sd over ``END_NOISE`` times the stated noise
         (:func:`~pigp_torch.optimizers.estimate.posterior_fit`; the stated noise is of each
         observable, a goal such as a mean absolute error scatters by about as much), the model
