@@ -352,9 +352,11 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         readings fits them with a noise sd over ``END_NOISE`` times the stated noise
         (:func:`~pigp_torch.optimizers.estimate.posterior_fit`; the stated noise is of each
         observable, a goal such as a mean absolute error scatters by about as much), the model
-        has been chasing single readings: the setting of the recent reading with the best GP
-        posterior mean instead (noisy readings averaged), set from the present state (with
-        play: past the play in the direction of the move). ``end="now"``: always the ask."""
+        has been chasing single readings: the setpoint of the recent reading with the best GP
+        posterior mean instead (noisy readings averaged; the setpoint as it was read, not
+        through the learned play: noise can make a play of the magnets up, and a setting
+        reached through a spurious play misses by twice its width). ``end="now"``: always the
+        ask."""
         if not self.tracking:
             return super().recommend()
         k = min(self.n_tracked, END_WINDOW)
@@ -364,7 +366,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         i, noise = posterior_fit(X, Y, self.bounds, maximize=self.maximize, k=k)
         if noise <= END_NOISE * self.obs_sd:
             return self.ask()
-        return self._setpoint_of(len(self.X) - k + i)
+        return self.X[len(self.X) - k + i].clone()
 
     def tracked(self) -> dict[str, tuple[float, str]]:
         """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while

@@ -161,14 +161,6 @@ class PlayState:
         x = setpoint_for(torch.where(same, self.X[-1] + H[-1], y), self.X[-1], H[-1], w)
         return torch.minimum(torch.maximum(x, lo), hi)
 
-    def _setpoint_of(self, i: int) -> torch.Tensor:
-        """The setpoint (``d``) that makes the acting fields of reading ``i`` from the present
-        state (:meth:`_setpoint_for_fields`; reading ``i``'s setpoint when the play is not
-        used)."""
-        if self._used_play is None:
-            return self.X[i].clone()
-        return self._setpoint_for_fields(self.X[i] + self._play[0][i])
-
     def _hold_small_moves(self, y: torch.Tensor) -> torch.Tensor:
         r"""The acting fields ``y`` asked, with the knobs asked to move by less than their play
         held where they are when the model predicts the goal within ``PLAY_HOLD`` noise sd of
