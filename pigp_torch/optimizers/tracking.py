@@ -40,7 +40,8 @@ search: from then on the model **follows the machine**.
    predicted (every standardized innovation within ``agree_sd``) or one better than the reading
    before, and halves otherwise, within ``track_trust_min``, ``track_trust_max`` (fractions of
    each knob's range: the travel per reading is a safety rule). :meth:`recommend` is that
-   optimum now.
+   optimum now, unless the recent readings scatter more than stated (then the recent reading
+   with the best GP posterior mean: :meth:`recommend`).
 4. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
    ``cusum_h``): the filter then forgets what it learned from the readings before
