@@ -8,6 +8,7 @@ import copy
 
 import torch
 
+from .test_model_check import _run
 from .test_tracking import TARGET, _drift_run, _toy, _toy_optimizer
 
 D = torch.float64
@@ -33,12 +34,7 @@ def _noisy_run(seed: int, end: str, sd: float = 0.03, n: int = 60):
         return _toy(x[None], truth)[0] + torch.stack([0.5 * x[1] ** 2, 0.4 * x[0] ** 2])
 
     opt = _toy_optimizer(end=end)
-    gen = torch.Generator().manual_seed(seed)
-    x = torch.zeros(2, dtype=D)
-    for _ in range(n):
-        o = true(x) + sd * torch.randn(2, generator=gen, dtype=D)
-        opt.tell(x, float((o - TARGET).abs().mean()), observables=o)
-        x = opt.ask()
+    _run(opt, true, sd, n, seed)
     return opt, float((true(opt.recommend()) - TARGET).abs().mean())
 
 
