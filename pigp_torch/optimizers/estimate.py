@@ -34,7 +34,7 @@ import torch
 
 from pigp_torch._utils import DTYPE
 
-__all__ = ["posterior_best"]
+__all__ = ["posterior_best", "posterior_fit"]
 
 #: The grid of the fit (module docstring): length scales in units of the median distance
 #: between the readings, noise-to-signal variance ratios.
@@ -54,19 +54,27 @@ def posterior_best(X, Y, bounds, *, maximize: bool = False, k: int = 30) -> int:
     Returns:
         An index into ``X`` (the best reading's when fewer than 3 readings are told).
     """
+    return posterior_fit(X, Y, bounds, maximize=maximize, k=k)[0]
+
+
+def posterior_fit(X, Y, bounds, *, maximize: bool = False, k: int = 30) -> tuple[int, float]:
+    r""":func:`posterior_best`'s index and the noise sd of its fit (the units of ``Y``):
+    :math:`\hat\sigma_n = s_y \sqrt{\lambda\, \hat\sigma_f^2}` (:math:`s_y` the sd of the
+    fitted readings, :math:`\lambda` and :math:`\hat\sigma_f^2` of the standardized fit; 0 when
+    fewer than 3 readings or all equal)."""
     X = torch.as_tensor(X, dtype=DTYPE)
     y = torch.as_tensor(Y, dtype=DTYPE).reshape(-1)
     sign = -1.0 if maximize else 1.0
     best = int((sign * y).argmin())
     if y.numel() < 3:
-        return best
+        return best, 0.0
     b = torch.as_tensor(bounds, dtype=DTYPE)
     Z = (X - b[0]) / (b[1] - b[0])
     near = torch.argsort((Z - Z[best]).norm(dim=-1))[: max(3, int(k))]
     Z, v = Z[near], sign * y[near]
     sd = v.std()
     if not bool(sd > 0):
-        return best
+        return best, 0.0
     v = (v - v.mean()) / sd
     D = torch.cdist(Z, Z)
     scale = D[D > 0].median() if bool((D > 0).any()) else torch.tensor(1.0, dtype=DTYPE)
@@ -84,6 +92,6 @@ def posterior_best(X, Y, bounds, *, maximize: bool = False, k: int = 30) -> int:
                 L.diagonal().log().sum()
             )
             if fit is None or ll > fit[0]:
-                fit = (ll, R, alpha)
+                fit = (ll, R, alpha, lam * float(v @ alpha) / len(v))
     mean = fit[1] @ fit[2]
-    return int(near[int(mean.argmin())])
+    return int(near[int(mean.argmin())]), float(sd) * fit[3] ** 0.5

@@ -40,7 +40,8 @@ search: from then on the model **follows the machine**.
    predicted (every standardized innovation within ``agree_sd``) or one better than the reading
    before, and halves otherwise, within ``track_trust_min``, ``track_trust_max`` (fractions of
    each knob's range: the travel per reading is a safety rule). :meth:`recommend` is that
-   optimum now.
+   optimum now, unless the recent readings scatter more than stated (then the recent reading
+   with the best GP posterior mean: :meth:`recommend`).
 4. **Step detection.** A CUSUM of the filter's standardized innovations :math:`z_t`,
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
    ``cusum_h``): the filter then forgets what it learned from the readings before
@@ -60,13 +61,17 @@ import torch
 
 from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers.base import AskTellOptimizer
+from pigp_torch.optimizers.estimate import posterior_fit
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
 from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
-from pigp_torch.optimizers.play import setpoint_for
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
-from pigp_torch.optimizers.tracking_play import PLAY_TOL, PlayState
+from pigp_torch.optimizers.tracking_play import PlayState
 
-__all__ = ["TrackingModelOptimizer"]
+__all__ = ["END_NOISE", "END_WINDOW", "TrackingModelOptimizer"]
+
+#: :meth:`TrackingModelOptimizer.recommend` while tracking: the last readings it looks at, and
+#: the multiple of the stated noise above which their scatter makes it choose among them.
+END_WINDOW, END_NOISE = 10, 4.0
 
 
 class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
@@ -90,6 +95,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_k, cusum_h, step_forget: step detection (default 10, 100: a lag
             of a few noise sd does not alarm, a jump of 10 does at once) and the weight left to
             the readings before a step (default 0.01).
+        end: :meth:`recommend` while tracking: ``"recent"`` (default: the best GP posterior
+            mean among the recent readings when they scatter more than stated, else the optimum
+            of the tracked model now) or ``"now"`` (always the optimum now).
         options: :class:`CheckedModelOptimizer` arguments (``check_window``, ``check_alpha``, ...,
             and :class:`FittedModelOptimizer`'s).
 
@@ -117,6 +125,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_k: float = 10.0,
         cusum_h: float = 100.0,
         step_forget: float = 0.01,
+        end: str = "recent",
         **options,
     ) -> None:
         self.track = isinstance(fallback, str) and fallback == "track"
@@ -142,6 +151,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         self.refit_every = int(refit_every)
         self.track_trust = (float(track_trust), float(track_trust_min), float(track_trust_max))
         self.cusum_k, self.cusum_h, self.step_forget = float(cusum_k), float(cusum_h), step_forget
+        if end not in ("recent", "now"):
+            raise ValueError(f"end must be 'recent' or 'now', got {end!r}")
+        self.end = end
         self.tracking = False
         self.filter: UnknownsFilter | None = None
         self.steps: list[int] = []
@@ -331,19 +343,31 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         finally:
             self.model = base
         self._search_offset = offset
-        if self._used_play is None:
-            return x
-        H, w = self._play[0], self._play[3]
-        lo, hi = self.bounds
-        same = (x - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
-        x = setpoint_for(torch.where(same, self.X[-1] + H[-1], x), self.X[-1], H[-1], w)
-        return torch.minimum(torch.maximum(x, lo), hi)
+        return x if self._used_play is None else self._setpoint_for_fields(x)
 
     def recommend(self) -> torch.Tensor:
-        """The setting the model puts the optimum at now (``d``): while tracking, the ask (the
-        optimum of the tracked model, plus the offset while it is on, around the current
-        setting); before, the checked model's (the one-shot behaviour)."""
-        return self.ask() if self.tracking else super().recommend()
+        r"""The setting the evidence puts the optimum at (``d``). Before tracking, the checked
+        model's (the one-shot behaviour). While tracking, the ask (the tracked model's optimum
+        around the current setting) unless the readings scatter more than stated: when a GP on
+        the scalar readings of the last :math:`k = \min(n_{tracked}, 10)` (``END_WINDOW``)
+        readings fits them with a noise sd over ``END_NOISE`` times the stated noise
+        (:func:`~pigp_torch.optimizers.estimate.posterior_fit`; the stated noise is of each
+        observable, a goal such as a mean absolute error scatters by about as much), the model
+        has been chasing single readings: the setpoint of the recent reading with the best GP
+        posterior mean instead (noisy readings averaged; the setpoint as it was read, not
+        through the learned play: noise can make a play of the magnets up, and a setting
+        reached through a spurious play misses by twice its width). ``end="now"``: always the
+        ask."""
+        if not self.tracking:
+            return super().recommend()
+        k = min(self.n_tracked, END_WINDOW)
+        if self.end == "now" or k < 3:
+            return self.ask()
+        X, Y = torch.stack(self.X[-k:]), torch.tensor(self.Y[-k:], dtype=DTYPE)
+        i, noise = posterior_fit(X, Y, self.bounds, maximize=self.maximize, k=k)
+        if noise <= END_NOISE * self.obs_sd:
+            return self.ask()
+        return self.X[len(self.X) - k + i].clone()
 
     def tracked(self) -> dict[str, tuple[float, str]]:
         """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while

@@ -10,7 +10,7 @@ import torch
 
 from pigp_torch.optimizers._least_squares import fit_unknowns
 from pigp_torch.optimizers.model_fit import FIT_ITER
-from pigp_torch.optimizers.play import play_path
+from pigp_torch.optimizers.play import play_path, setpoint_for
 from pigp_torch.optimizers.track_filter import information
 
 __all__ = ["PLAY_EVIDENCE", "PLAY_EXPLAINS", "PLAY_HOLD", "PLAY_TOL", "PlayState"]
@@ -150,6 +150,16 @@ class PlayState:
             f.U, f.L, f.eta = given
         self.u = f.u[: self.center.numel()].clone()
         self._refresh_play()
+
+    def _setpoint_for_fields(self, y: torch.Tensor) -> torch.Tensor:
+        """The setpoint (``d``, within the bounds) that makes the acting fields ``y`` from the
+        present state (:func:`~pigp_torch.optimizers.play.setpoint_for`; a field within
+        ``PLAY_TOL`` of the present one is the present one). Only while the play is used."""
+        H, w = self._play[0], self._play[3]
+        lo, hi = self.bounds
+        same = (y - self.X[-1] - H[-1]).abs() <= PLAY_TOL * (hi - lo)
+        x = setpoint_for(torch.where(same, self.X[-1] + H[-1], y), self.X[-1], H[-1], w)
+        return torch.minimum(torch.maximum(x, lo), hi)
 
     def _hold_small_moves(self, y: torch.Tensor) -> torch.Tensor:
         r"""The acting fields ``y`` asked, with the knobs asked to move by less than their play
