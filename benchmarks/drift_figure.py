@@ -18,8 +18,8 @@ it exists, reuses) that run.
         --readings 300 --track-csv track0.csv -o docs/figures/drift_ares.png
 
 For ARES, ``--track TRIAL`` runs ``ares-physics`` on that tuning trial of the family and draws
-the offsets of the beam centroid at the screen its tracker carries beside the model (µm) over
-the true incoming centroid's drift since reading 0 (µm), and the true MAE of that run.
+the beam centroid at the screen that its tracked model predicts at one fixed setting (the run's
+last) against the drifting machine's at that setting (µm), and the true MAE of that run.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ class Recorder:
         self.optimizer, self.rows, self.optima = optimizer, [], []
         self.uses_observables = optimizer.uses_observables
         self.record_optima = optima  # off where recommend() is an ask (the ARES tracker's)
+        self.states: list[tuple[torch.Tensor, torch.Tensor | None]] = []  # (theta, offset)
 
     def ask(self):
         return self.optimizer.ask()
@@ -59,6 +60,10 @@ class Recorder:
             self.rows.append((len(self.optimizer.Y) - 1, name, value, unit))
         if self.record_optima:
             self.optima.append(self.optimizer.recommend().detach().clone())
+        else:  # a fitted-model optimizer: its unknowns and offset now
+            offset = self.optimizer.offset
+            self.states.append((self.optimizer.theta.clone(), None if offset is None else
+                                offset.clone()))  # fmt: skip
 
     def recommend(self):
         return self.optimizer.recommend()
@@ -98,16 +103,16 @@ def track_run(seed: int, family: str, readings: int, prior_path: str | None) -> 
 
 def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
     """``ares-physics`` on tuning trial ``trial`` of ``family`` (draw seed 101, noise-free
-    screen, as ``drift_bench.py``): per reading the offsets of the beam centroid at the screen
-    that its tracker carries beside the model (``mu_x_offset``, ``mu_y_offset``), the true
-    incoming centroid's drift since reading 0 (``true_drift_mu_x``, ``true_drift_mu_y``) and the
-    run's true MAE, all in µm (``reading, name, value, unit``). The incoming centroid and the
-    screen's misalignment move the beam alike, so the tracker's fitted incoming centroid is not
-    the truth's; the offsets are what it follows."""
+    screen, as ``drift_bench.py``): per reading the beam centroid at the screen that its tracked
+    model (unknowns and offset after that reading) predicts at one fixed setting, the run's last
+    (``model_mu_x``, ``model_mu_y``), the true machine's centroid at that setting at that
+    reading (``true_mu_x``, ``true_mu_y``; the drifting incoming beam, no magnet play), and the
+    run's true MAE, all in µm (``reading, name, value, unit``). The unknowns themselves are not
+    drawn: the incoming centroid and the screen's misalignment move the beam alike, so the
+    tracker may carry a drift in either; the beam they predict is what it follows."""
     from pigp_torch._utils import DTYPE, default_dtype
     from pigp_torch.machines import KINDS
     from pigp_torch.machines.ares_ea.methods import ares_objective_for
-    from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES
     from pigp_torch.machines.drift import drive
     from pigp_torch.methods import METHODS, RunContext
 
@@ -119,22 +124,29 @@ def ares_track_run(trial: int, family: str, readings: int) -> pd.DataFrame:
                      noise=None, maximize=machine.maximize)  # fmt: skip
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
-        recorder = Recorder(METHODS["ares-physics"].build(ctx), optima=False)
-        _, true = drive(machine, recorder, readings, set_back=False)
+        optimizer = METHODS["ares-physics"].build(ctx)
+        recorder = Recorder(optimizer, optima=False)
+        X, true = drive(machine, recorder, readings, set_back=False)
+        x_ref = X[-1][None]
+        with torch.no_grad():
+            model = torch.stack([
+                optimizer.machine_model.observe(x_ref, theta)[0]
+                + (0.0 if offset is None else offset)
+                for theta, offset in recorder.states
+            ])  # fmt: skip
+            truth = torch.stack([
+                machine.segment.observe(x_ref, machine.incoming_at(t),
+                                        machine.trial.misalignments)[0]
+                for t in range(readings)
+            ])  # fmt: skip
     mae = ((true - machine.target).abs().mean(-1) * 1e6).tolist()
-    names = {f"{n}_offset" for n in TRACKED_ARES}
-    rows = [(t, name, 1e6 * v, "µm") for t, name, v, _ in recorder.rows if name in names]
-    for name in TRACKED_ARES:
-        i = INCOMING_NAMES.index(name)
-        start = float(machine.incoming_at(0)[i])
-        rows += [(t, f"true_drift_{name}", 1e6 * (float(machine.incoming_at(t)[i]) - start),
-                  "µm") for t in range(readings)]  # fmt: skip
-    rows += [(t, "mae_true", m, "µm") for t, m in enumerate(mae)]
+    rows = [(t, "mae_true", m, "µm") for t, m in enumerate(mae)]
+    for j, name in ((0, "mu_x"), (2, "mu_y")):
+        rows += [(t, f"model_{name}", 1e6 * float(model[t, j]), "µm") for t in range(readings)]
+        rows += [(t, f"true_{name}", 1e6 * float(truth[t, j]), "µm") for t in range(readings)]
     return pd.DataFrame(rows, columns=["reading", "name", "value", "unit"])
 
 
-#: The incoming-beam unknowns the ARES figure draws against the truth.
-TRACKED_ARES = ("mu_x", "mu_y")
 #: The tracked panels per kind: (the method's series, its label, the truth's series, its
 #: label, the axis label).
 PANELS = {
@@ -142,10 +154,10 @@ PANELS = {
                ("optimum_moved", "pigp-physics", "true_optimum_moved", "true",
                 f"travel since {TRAVEL_FROM} (A)"),
                ("remembered", "pigp-physics", None, None, "readings remembered")),
-    "ares": (("mu_x_offset", "offset at the screen (ares-physics)", "true_drift_mu_x",
-              "incoming drift since reading 0 (true)", "μx (µm)"),
-             ("mu_y_offset", "offset at the screen (ares-physics)", "true_drift_mu_y",
-              "incoming drift since reading 0 (true)", "μy (µm)"),
+    "ares": (("model_mu_x", "tracked model (ares-physics)", "true_mu_x", "true",
+              "μx at the screen at the last setting (µm)"),
+             ("model_mu_y", "tracked model (ares-physics)", "true_mu_y", "true",
+              "μy at the screen at the last setting (µm)"),
              ("mae_true", "true MAE of this run", None, None, "MAE (µm)")),
 }  # fmt: skip
 

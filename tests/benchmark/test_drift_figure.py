@@ -50,26 +50,19 @@ def test_held_out_machines_and_the_wrong_column_are_refused(figure, tmp_path, ca
 
 
 @pytest.mark.slow  # two 12-reading ARES tracker runs: ~1-3 min on a loaded host
-def test_an_ares_track_run_records_the_tracked_offsets_beside_the_drifting_truth(figure):
-    """A 12-reading ``ares-physics`` run on tuning trial 0 of the drift family: one true MAE per
-    reading, the true incoming centroid's drift since reading 0 (µm) equal to the machine's own
-    ``incoming_at`` differences and moving (the family drifts), and the tracker's offsets at the
-    screen recorded per reading in µm."""
-    from pigp_torch.machines import KINDS
-    from pigp_torch.machines.ares_ea.simulation import INCOMING_NAMES
-
+def test_an_ares_track_run_records_the_tracked_beam_beside_the_drifting_truth(figure):
+    """A 12-reading ``ares-physics`` run on tuning trial 0 of the drift family: its true MAE per
+    reading is drift_bench's run of the same trial; the true centroid at the fixed setting
+    moves with the incoming beam (the family drifts); the tracked model's prediction there is
+    recorded for every reading, in µm, and after the fit it is within 200 µm of the truth."""
     track = figure.ares_track_run(0, "drift", 12)
-    machine = KINDS["ares-ea"].drift_machine(family="drift", seed=101, trial=0)
     for name in ("mu_x", "mu_y"):
-        truth = track[track.name == f"true_drift_{name}"].sort_values("reading")
-        assert truth.reading.tolist() == list(range(12))
-        i = INCOMING_NAMES.index(name)
-        start = float(machine.incoming_at(0)[i])
-        expected = [1e6 * (float(machine.incoming_at(t)[i]) - start) for t in range(12)]
-        assert truth.value.tolist() == pytest.approx(expected, rel=1e-12, abs=1e-9)
-        assert truth.value.iloc[0] == 0.0 and truth.value.iloc[-1] != 0.0
-        offsets = track[track.name == f"{name}_offset"]
-        assert 0 < len(offsets) <= 12 and set(offsets.unit) == {"µm"}
+        truth = track[track.name == f"true_{name}"].sort_values("reading")
+        model = track[track.name == f"model_{name}"].sort_values("reading")
+        assert truth.reading.tolist() == model.reading.tolist() == list(range(12))
+        assert set(truth.unit) == set(model.unit) == {"µm"}
+        assert truth.value.iloc[-1] != truth.value.iloc[0]
+        assert abs(model.value.iloc[-1] - truth.value.iloc[-1]) < 200.0
     mae = track[track.name == "mae_true"].value.tolist()
     bench = load_script("drift_bench").ares_run((0, "ares-physics", "drift", 101, 12, 0.0,
                                                  (6, 12), None))  # fmt: skip
