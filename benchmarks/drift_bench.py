@@ -79,14 +79,15 @@ def ares_run(args) -> dict:
 
 
 def spear3_run(args) -> dict:
-    """One SPEAR3 run: ``(seed, method, family, readings, noise, window, prior)`` -> scores and
-    the per-reading gain against the moving optimum."""
+    """One SPEAR3 run: ``(seed, method, family, readings, noise, window, prior, options)`` ->
+    scores and the per-reading gain against the moving optimum (``options``: the method's)."""
     from pigp_torch.bench.protocol import run_seed
     from pigp_torch.machines.ring.drift import gain_series
 
-    seed, method, family, readings, noise, window, prior = args
+    seed, method, family, readings, noise, window, prior, options = args
     torch.set_num_threads(1)
     spec = METHODS[method]
+    spec = spec.with_options(**options) if options else spec
     machine = KINDS["spear3"].drift_machine(family=family, seed=seed, noise=noise)
     ctx = RunContext(machine=machine, prior=prior, seed=run_seed(method, seed), noise=noise,
                      archive_size=0)  # fmt: skip
@@ -178,10 +179,10 @@ def runs_from_csv(paths, window: tuple[int, int]) -> list[dict]:
 
 
 def _jobs(a) -> tuple[list, object]:
+    options = json.loads(a.options) if a.options else {}
     if a.kind == "ares":
         trials = _ids(a.trials, ARES_HELD_OUT, a.held_out, "ARES trials")
         window = tuple(a.window or (150, 300))
-        options = json.loads(a.options) if a.options else {}
         return [(t, m, a.family, a.seed, a.readings, a.noise, window, options)
                 for m in a.methods for t in trials], ares_run  # fmt: skip
     seeds = _ids(a.seeds, RING_HELD_OUT, a.held_out, "SPEAR3 seeds")
@@ -197,7 +198,7 @@ def _jobs(a) -> tuple[list, object]:
 
         print(f"prior: model ring 0, {a.center_ensemble} ensemble rings", flush=True)
         prior = model_prior(0, noise=a.noise, center_ensemble=a.center_ensemble)
-    return [(s, m, a.family, a.readings, a.noise, window, prior)
+    return [(s, m, a.family, a.readings, a.noise, window, prior, options)
             for m in a.methods for s in seeds], spear3_run  # fmt: skip
 
 
@@ -223,7 +224,8 @@ def main(argv=None) -> int:
     p.add_argument(
         "--options",
         default=None,
-        help='ARES: the methods\' options as JSON, e.g. \'{"fallback": "track"}\'',
+        help='the methods\' options as JSON, e.g. \'{"fallback": "track"}\' (ARES) or '
+        '\'{"forgetting": {"slopes": [0]}}\' (SPEAR3)',
     )
     p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
     p.add_argument("--summary", action="store_true",

@@ -80,3 +80,25 @@ def test_the_final_reading_is_at_nelder_mead_restarts_recommendation():
     assert [n for n, _, _ in opt.restarts] == [8, 16]
     assert torch.equal(X[-1], opt.restarts[-1][1]) and len(X) == 21
     assert torch.equal(true[-1], machine.last_true_observables)
+
+
+def test_spear3_runs_get_the_methods_options(bench, monkeypatch):
+    """--options reaches a SPEAR3 run's method (``spec.with_options``) before any ring is
+    built, as for ARES."""
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    class Spec:
+        needs_prior = False
+
+        def with_options(self, **options):
+            seen.update(options)
+            raise Stop
+
+    monkeypatch.setitem(bench.METHODS, "probe-method", Spec())
+    with pytest.raises(Stop):
+        bench.main(["spear3", "--seeds", "101", "--methods", "probe-method",
+                    "--options", '{"forgetting": {"slopes": [0]}}'])  # fmt: skip
+    assert seen == {"forgetting": {"slopes": [0]}}
