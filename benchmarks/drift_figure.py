@@ -155,9 +155,9 @@ PANELS = {
                 f"travel since {TRAVEL_FROM} (A)"),
                ("remembered", "pigp-physics", None, None, "readings remembered")),
     "ares": (("model_mu_x", "tracked model (ares-physics)", "true_mu_x", "true",
-              "μx at the screen at the last setting (µm)"),
+              "μx at the screen (µm)"),
              ("model_mu_y", "tracked model (ares-physics)", "true_mu_y", "true",
-              "μy at the screen at the last setting (µm)"),
+              "μy at the screen (µm)"),
              ("mae_true", "true MAE of this run", None, None, "MAE (µm)")),
 }  # fmt: skip
 
