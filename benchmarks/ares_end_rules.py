@@ -12,8 +12,10 @@ true MAE (µm) of one more reading there:
   10 / 20 readings (:func:`~pigp_torch.optimizers.estimate.posterior_best`, setpoints as read).
 
 It prints one JSON line per run: the window median (readings N/2 to N-1), the best and the last
-true MAE (µm), each rule's true MAE (µm) and the GP's noise sd of the last 10 / 20 readings
-(µm; ``rec`` leaves the ask above 4x the stated noise). Tuning trials only (0-49).
+true MAE (µm), each rule's true MAE (µm), the GP's noise sd of the last 10 / 20 readings
+(µm; ``rec`` leaves the ask above 4x the stated noise), the noise of the fit at the end (µm:
+the stated one or the noise probe's) and the filter's forgetting (``null`` before tracking).
+Tuning trials only (0-49).
 
     nice -n 10 python benchmarks/ares_end_rules.py screen-jitter 1 [--readings 100] \\
         [--options '{"end": "now"}']
@@ -77,11 +79,13 @@ def run(family: str, trial: int, readings: int, options: dict, seed: int = 101) 
             mm.read()
             scores[name] = round(mae(mm.last_true_observables), 3)
     s = np.asarray(series)
-    return {
+    return {  # the fit's noise (µm) and the filter's forgetting at the end
         "family": family, "trial": trial, "readings": readings, "tracking": tracking,
         "window_um": round(float(np.median(s[readings // 2 :])), 3),
         "best_um": round(float(s.min()), 3), "last_um": round(float(s[-1]), 3),
         "ends_um": scores, "gp_noise_um": {w: round(v, 3) for w, v in noise.items()},
+        "fit_noise_um": round(opt.obs_sd * 1e6, 3),
+        "forget": None if getattr(opt, "filter", None) is None else opt.filter.forget,
     }  # fmt: skip
 
 

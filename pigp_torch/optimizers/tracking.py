@@ -17,7 +17,13 @@ search: from then on the model **follows the machine**.
    (time: the readings told), relinearized every ``refit_every`` readings at the weighted batch
    fit of all readings (a nonlinear model's old linearizations mislead it). It starts from the
    checked model's fit and information, the offset at 0 with the prior half width
-   ``offset_half_width`` (observable units, default 50 ``obs_sd``).
+   ``offset_half_width`` (observable units, default 50 ``obs_sd``), and the checked model's
+   noise: at the first failed check the setting is read again (``noise_probe`` times, default
+   2: :class:`~pigp_torch.optimizers.model_check.CheckedModelOptimizer`), and a scatter of the
+   repeats above the stated noise becomes the noise :math:`s` of the fit and of the filter. A
+   machine that drifts between two readings reads part of its drift as noise; a screen that
+   jitters more than stated is otherwise chased reading by reading (the filter then learns a
+   fast forgetting and the asks follow the jitter).
 2. **The acting fields from the optimizer's own setpoints.** Magnets with play (backlash) act
    with :math:`y_t = x_t + h_t` where the offset :math:`h_t \in [-w, w]` follows the setpoint
    path (:mod:`pigp_torch.optimizers.play`: a move past the play drags the field behind the
@@ -46,7 +52,10 @@ search: from then on the model **follows the machine**.
    :math:`C_t = \max(0, C_{t-1} + \overline{z_t^2} - k)`, alarms above :math:`h` (``cusum_k``,
    ``cusum_h``): the filter then forgets what it learned from the readings before
    (``step_forget``) and re-acquires from the next ones; a ``"step"`` notice says so.
-5. **The check returns to the model.** The prior check keeps running on the tracked model; the
+5. **What is left, optionally.** With ``residual_gp=True`` a GP of the residuals of the last
+   readings (:mod:`~pigp_torch.optimizers.residual_gp`) is added to the model the ask optimizes,
+   before and while tracking, whenever it explains them better than noise.
+6. **The check returns to the model.** The prior check keeps running on the tracked model; the
    model is never abandoned, and the ``"model-restored"`` notice says when it explains the last
    ``check_window`` readings again.
 
@@ -64,6 +73,7 @@ from pigp_torch.optimizers.base import AskTellOptimizer
 from pigp_torch.optimizers.estimate import posterior_fit
 from pigp_torch.optimizers.model_check import CheckedModelOptimizer, chi2_check
 from pigp_torch.optimizers.model_fit import AGREE_SD, FittedModelOptimizer
+from pigp_torch.optimizers.residual_gp import ResidualGP, tracker_residual_gp
 from pigp_torch.optimizers.track_filter import FORGET_GRID, UnknownsFilter, information
 from pigp_torch.optimizers.tracking_play import PlayState
 
@@ -98,6 +108,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         end: :meth:`recommend` while tracking: ``"recent"`` (default: the best GP posterior
             mean among the recent readings when they scatter more than stated, else the optimum
             of the tracked model now) or ``"now"`` (always the optimum now).
+        residual_gp: add a GP of the last readings' residuals to the model the ask optimizes
+            (:mod:`~pigp_torch.optimizers.residual_gp`; default ``False``: on the static ARES
+            gaps it moved the final by 0.01-1 µm either way, docs/results.md).
         options: :class:`CheckedModelOptimizer` arguments (``check_window``, ``check_alpha``, ...,
             and :class:`FittedModelOptimizer`'s).
 
@@ -106,6 +119,8 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         filter: the :class:`~pigp_torch.optimizers.track_filter.UnknownsFilter` (``None``
             before); steps: readings told at each step alarm; n_tracked: readings told while
             tracking; n_restored: "model-restored" notices.
+        last_residual_gp: the residual GP of the last ask (``None``: none used);
+            n_residual_asks: asks that used one.
     """
 
     name = "model-fit-tracking"
@@ -126,11 +141,10 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         cusum_h: float = 100.0,
         step_forget: float = 0.01,
         end: str = "recent",
+        residual_gp: bool = False,
         **options,
     ) -> None:
         self.track = isinstance(fallback, str) and fallback == "track"
-        if self.track:  # a repeat reading of a drifting machine reads its drift as noise
-            options.setdefault("noise_probe", 0)
         super().__init__(bounds, fallback="nm" if self.track else fallback, **options)
         if not (0 < track_trust_min <= track_trust <= track_trust_max):
             raise ValueError("need 0 < track_trust_min <= track_trust <= track_trust_max")
@@ -154,6 +168,9 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         if end not in ("recent", "now"):
             raise ValueError(f"end must be 'recent' or 'now', got {end!r}")
         self.end = end
+        self.residual_gp = bool(residual_gp)
+        self.last_residual_gp: ResidualGP | None = None
+        self.n_residual_asks = 0
         self.tracking = False
         self.filter: UnknownsFilter | None = None
         self.steps: list[int] = []
@@ -161,6 +178,7 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         self.n_restored = 0
         self._cusum = 0.0
         self._search_offset: torch.Tensor | None = None
+        self._search_gp = False
 
     @property
     def offset(self) -> torch.Tensor | None:
@@ -311,6 +329,8 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
     def _fit_change(self, theta: torch.Tensor) -> float:
         """The change of the prediction at the last ask since the last search (noise sd), the
         offset's change included."""
+        if self.last_residual_gp is not None or self._search_gp:
+            return float("inf")  # the residual GP moves with every reading
         change = super()._fit_change(theta)
         now, then = self.offset, self._search_offset
         if (now is None) != (then is None):
@@ -324,16 +344,23 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         offset in the trust region around the current setting. With play the search is over
         the acting fields around the present ones, and the ask is the setpoint that makes the
         optimum's fields from the present state (:func:`~pigp_torch.optimizers.play.
-        setpoint_for`: past the play in the direction of the move)."""
+        setpoint_for`: past the play in the direction of the move). With ``residual_gp``, in
+        both, the residual GP of the last readings is added
+        (:func:`~pigp_torch.optimizers.residual_gp.tracker_residual_gp`)."""
         offset = self.offset
-        if offset is None and self._used_play is None:
+        gp = tracker_residual_gp(self) if self.residual_gp else None
+        self.last_residual_gp = gp
+        if offset is None and self._used_play is None and gp is None:
             x = super().ask()
-            self._search_offset = None
+            self._search_offset, self._search_gp = None, False
             return x
         base = self.model
 
         def model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-            return base(X, theta) + offset if offset is not None else base(X, theta)
+            out = base(X, theta)
+            if offset is not None:
+                out = out + offset
+            return out + gp(X) if gp is not None else out
 
         self.model = model
         try:
@@ -342,7 +369,8 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
                 x = self._hold_small_moves(x)
         finally:
             self.model = base
-        self._search_offset = offset
+        self._search_offset, self._search_gp = offset, gp is not None
+        self.n_residual_asks += int(gp is not None)
         return x if self._used_play is None else self._setpoint_for_fields(x)
 
     def recommend(self) -> torch.Tensor:
@@ -368,27 +396,3 @@ class TrackingModelOptimizer(PlayState, CheckedModelOptimizer):
         if noise <= END_NOISE * self.obs_sd:
             return self.ask()
         return self.X[len(self.X) - k + i].clone()
-
-    def tracked(self) -> dict[str, tuple[float, str]]:
-        """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while
-        tracking) and the offset of each observable (0 while the model alone is trusted)."""
-        mm = self.machine_model
-        P = self.center.numel()
-        names = list(mm.unknown_names) if mm is not None else [f"u{i}" for i in range(P)]
-        units = list(mm.unknown_units) if mm is not None else [""] * P
-        out = {n: (float(v), u) for n, v, u in zip(names, self.theta, units, strict=True)}
-        if not self.O:
-            return out
-        m = self.O[-1].numel()
-        obs = list(mm.observable_names) if mm is not None else [f"o{j}" for j in range(m)]
-        obs_units = list(mm.observable_units) if mm is not None else [""] * m
-        off = self.offset if self.offset is not None else torch.zeros(m, dtype=DTYPE)
-        for n, v, u in zip(obs, off, obs_units, strict=True):
-            out[f"{n}_offset"] = (float(v), u)
-        if self._play_half is not None:
-            w = self.play_width if self.filter is not None else torch.zeros(self.dim, dtype=DTYPE)
-            knobs = list(mm.knob_names) if mm is not None else [f"x{i}" for i in range(self.dim)]
-            knob_units = list(mm.knob_units) if mm is not None else [""] * self.dim
-            for n, v, u in zip(knobs, w, knob_units, strict=True):
-                out[f"{n}_play"] = (float(v), u)
-        return out

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from pigp_torch._utils import DTYPE
 from pigp_torch.optimizers._least_squares import fit_unknowns
 from pigp_torch.optimizers.model_fit import FIT_ITER
 from pigp_torch.optimizers.play import play_path, setpoint_for
@@ -175,3 +176,27 @@ class PlayState:
         with torch.no_grad():
             g = self.goal(self.model(torch.stack([y, hold]), self.theta.detach()))
         return hold if bool(g[1] <= g[0] + PLAY_HOLD * self.obs_sd) else y
+
+    def tracked(self) -> dict[str, tuple[float, str]]:
+        """The tracked quantities: ``{name: (value, unit)}``: the fitted unknowns (held while
+        tracking) and the offset of each observable (0 while the model alone is trusted)."""
+        mm = self.machine_model
+        P = self.center.numel()
+        names = list(mm.unknown_names) if mm is not None else [f"u{i}" for i in range(P)]
+        units = list(mm.unknown_units) if mm is not None else [""] * P
+        out = {n: (float(v), u) for n, v, u in zip(names, self.theta, units, strict=True)}
+        if not self.O:
+            return out
+        m = self.O[-1].numel()
+        obs = list(mm.observable_names) if mm is not None else [f"o{j}" for j in range(m)]
+        obs_units = list(mm.observable_units) if mm is not None else [""] * m
+        off = self.offset if self.offset is not None else torch.zeros(m, dtype=DTYPE)
+        for n, v, u in zip(obs, off, obs_units, strict=True):
+            out[f"{n}_offset"] = (float(v), u)
+        if self._play_half is not None:
+            w = self.play_width if self.filter is not None else torch.zeros(self.dim, dtype=DTYPE)
+            knobs = list(mm.knob_names) if mm is not None else [f"x{i}" for i in range(self.dim)]
+            knob_units = list(mm.knob_units) if mm is not None else [""] * self.dim
+            for n, v, u in zip(knobs, w, knob_units, strict=True):
+                out[f"{n}_play"] = (float(v), u)
+        return out
