@@ -238,7 +238,9 @@ def build_ares_physics(
 
     Args:
         obs_sd: noise of the readings in the fit (m); default ``max(ctx.noise, obs_sd_floor)``
-            (``ctx.noise``: the screen noise in m, ``None``: unknown).
+            (``ctx.noise``: the screen noise in m, ``None``: unknown); a larger scatter of the
+            repeat readings at the first failed prior check (``noise_probe``, default 2)
+            replaces it.
         obs_sd_floor: the smallest noise assumed (default 1 µm).
         best_from: how the best setting is chosen (``"readings"`` or ``"model"``, see
             :class:`FittedModelOptimizer`); default ``"model"`` with a stated screen noise
