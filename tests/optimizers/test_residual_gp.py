@@ -10,6 +10,8 @@ import torch
 
 from pigp_torch.optimizers.residual_gp import MIN_GAIN_NATS, fit_residual_gp
 
+from .test_tracking import TARGET, _toy_optimizer
+
 D = torch.float64
 BOUNDS = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 0.5]], dtype=D)
 
@@ -101,18 +103,10 @@ def test_the_tracker_with_the_residual_gp_ends_at_the_machine_s_optimum(residual
     """The tracker on that machine, read with noise 1e-3: with the option the residual GP is
     used on most asks, and either way the final true MAE is within 2e-4 of the machine's
     optimum (a grid of 20,001 settings); without it no GP is fitted."""
-    from pigp_torch.optimizers.tracking import TrackingModelOptimizer
-
-    target = torch.tensor([0.5, -0.4], dtype=D)
-    opt = TrackingModelOptimizer(
-        torch.tensor([[-1.0], [1.0]], dtype=D),
+    opt = _toy_optimizer(
+        bounds=torch.tensor([[-1.0], [1.0]], dtype=D),
         model=_model,
-        goal=lambda o: ((o - target).square() + 1e-12).sqrt().mean(-1),
-        residual=lambda o: o - target,
-        theta_center=torch.tensor([1.0, 1.0, 0.0], dtype=D),
-        theta_half_width=torch.tensor([0.5, 0.5, 0.5], dtype=D),
-        obs_sd=0.001,
-        maximize=False,
+        center=(1.0, 1.0, 0.0),
         residual_gp=residual_gp,
         noise_probe=0,  # the GP alone: no repeat readings at the first failed check
     )
@@ -120,11 +114,11 @@ def test_the_tracker_with_the_residual_gp_ends_at_the_machine_s_optimum(residual
     x = torch.tensor([-0.5], dtype=D)
     for _ in range(40):
         o = _machine(x[None])[0] + 0.001 * torch.randn(2, generator=gen, dtype=D)
-        opt.tell(x, float((o - target).abs().mean()), observables=o)
+        opt.tell(x, float((o - TARGET).abs().mean()), observables=o)
         x = opt.ask()
     grid = torch.linspace(-1, 1, 20001, dtype=D)[:, None]
-    best = float((_machine(grid) - target).abs().mean(-1).min())
-    final = float((_machine(opt.recommend()[None])[0] - target).abs().mean())
+    best = float((_machine(grid) - TARGET).abs().mean(-1).min())
+    final = float((_machine(opt.recommend()[None])[0] - TARGET).abs().mean())
     assert opt.tracking and abs(final - best) < 2e-4, (final, best)
     if residual_gp:
         assert opt.n_residual_asks >= 10, opt.n_residual_asks

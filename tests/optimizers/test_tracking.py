@@ -65,13 +65,14 @@ def test_the_forgetting_learned_is_none_on_a_static_machine_and_some_under_drift
         assert lag < 0.3 and stale > 3 * lag, (lag, stale)
 
 
-def _toy_optimizer(**kw) -> TrackingModelOptimizer:
+def _toy_optimizer(*, bounds=BOUNDS, model=_toy, center=(1.0, 0.0, 1.0), **kw):
+    """The tracker of a toy model with 3 unknowns (half widths 0.5) for the target TARGET."""
     return TrackingModelOptimizer(
-        BOUNDS,
-        model=_toy,
+        bounds,
+        model=model,
         goal=lambda o: ((o - TARGET).square() + 1e-12).sqrt().mean(-1),
         residual=lambda o: o - TARGET,
-        theta_center=torch.tensor([1.0, 0.0, 1.0], dtype=D),
+        theta_center=torch.tensor(center, dtype=D),
         theta_half_width=torch.tensor([0.5, 0.5, 0.5], dtype=D),
         obs_sd=0.001,
         maximize=False,
