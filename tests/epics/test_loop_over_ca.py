@@ -140,11 +140,14 @@ def test_ioc_killed_mid_run(ring, tmp_path):
 
 @pytest.mark.slow
 def test_end_to_end_physics_informed_bayesopt(ioc, probe, ring):
-    """PI-GP BO over CA improves the loss rate in 15 evaluations; the knobs end where they began.
+    """PI-GP BO over CA improves the loss rate in 20 evaluations; the knobs end where they began.
 
     A plumbing test, not a benchmark: the prior is built from the exact Hessian of the served
     ring's own fast model, and the method is ``pigp-physics`` (the physics form fitted online,
-    with that prior's shape; cheap acquisition settings).
+    with that prior's shape; cheap acquisition settings). The IOC's noise is not seeded (each
+    reading draws its own), so the margin is set by runs off CA with 40 noise seeds: the true
+    gain of the best-read setting over the start was 0.19-1.16 mA/min after 20 evaluations
+    (-0.01-0.93 after 15, where this test used to stop and failed about one run in five).
     """
     from pigp_torch.methods import METHODS, RunContext
     from pigp_torch.prior import prior_from_model
