@@ -136,6 +136,10 @@ class FittedModelOptimizer(AskTellOptimizer):
         residual: ``N x m`` observables ``->`` ``N x r`` residuals whose zero is the goal's
             optimum (e.g. observables minus target; default ``None``: L-BFGS-B on the goal
             only).
+        beam: ``(N x m, P) -> N x m``, what the goal and the residual are on, from the predicted
+            observables and the ``P`` unknowns (:attr:`~pigp_torch.prior.machine_model.
+            MachineModel.beam`: an instrument's response among the unknowns); default ``None``:
+            the observables themselves.
         settings: a :class:`ModelFitSettings`, or ``None``: built from ``options``.
         options: :class:`ModelFitSettings` fields (``obs_sd=`` ..., over ``settings``).
 
@@ -162,6 +166,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         theta_center,
         theta_half_width,
         residual: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        beam: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         settings: ModelFitSettings | None = None,
         **options,
     ) -> None:
@@ -175,6 +180,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         self.model = model
         self.goal = goal
         self.residual = residual
+        self.beam = beam
         self.center = torch.as_tensor(theta_center, dtype=DTYPE).reshape(-1)
         self.half_width = torch.as_tensor(theta_half_width, dtype=DTYPE).reshape(-1)
         if self.center.shape != self.half_width.shape or (self.half_width <= 0).any():
@@ -222,6 +228,7 @@ class FittedModelOptimizer(AskTellOptimizer):
             model=machine_model.observe,
             goal=machine_model.goal,
             residual=machine_model.residual,
+            beam=machine_model.beam,
             theta_center=machine_model.unknown_center,
             theta_half_width=machine_model.unknown_half_width,
             obs_sd=obs_sd,
@@ -234,6 +241,11 @@ class FittedModelOptimizer(AskTellOptimizer):
     def theta(self) -> torch.Tensor:
         """The fitted unknowns (``P``, model units)."""
         return self.center + self.half_width * self.u
+
+    def aim(self, O: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """What the goal is on (``N x m``): the predicted observables ``O``, or their beam
+        (``beam``) under the first ``P`` of ``theta`` (a tracker's ``theta`` has more)."""
+        return O if self.beam is None else self.beam(O, theta[..., : self.center.numel()])
 
     def tell(self, x, y: float, observables=None) -> None:
         """Record a reading: knobs ``x`` (``d``), scalar ``y`` and the ``m`` observables; refit."""
@@ -294,7 +306,8 @@ class FittedModelOptimizer(AskTellOptimizer):
         cache = self._best_cache
         if cache is None or cache[0] != self.n_told or cache[1] is not self._fit_theta:
             with torch.no_grad():
-                g = self.goal(self.model(torch.stack(self.X), self._fit_theta))
+                O = self.model(torch.stack(self.X), self._fit_theta)
+                g = self.goal(self.aim(O, self._fit_theta))
             g = torch.where(torch.isfinite(g), g, torch.full_like(g, torch.inf))
             self._best_cache = (self.n_told, self._fit_theta, int(g.argmin()))
         i = self._best_cache[2]
@@ -345,7 +358,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         Ze = ((torch.stack(extra) - box[0]) / width.clamp_min(1e-300)).clamp(0.0, 1.0)
         Z = torch.cat([Ze, Z])
         with torch.no_grad():
-            values = self.goal(self.model(box[0] + width * Z, theta))
+            values = self.goal(self.aim(self.model(box[0] + width * Z, theta), theta))
         values = torch.where(torch.isfinite(values), values, torch.full_like(values, torch.inf))
         order = torch.argsort(values)
         # The N_REFINE best candidates are refined together (one batched evaluation per
@@ -355,13 +368,13 @@ class FittedModelOptimizer(AskTellOptimizer):
             starts = torch.cat([Ze[-1:], starts])
 
         def goal(X: torch.Tensor) -> torch.Tensor:
-            return self.goal(self.model(X, theta))
+            return self.goal(self.aim(self.model(X, theta), theta))
 
         residual = None
         if self.residual is not None:
 
             def residual(X: torch.Tensor) -> torch.Tensor:
-                return self.residual(self.model(X, theta))
+                return self.residual(self.aim(self.model(X, theta), theta))
 
         X, v = search_in_box(
             goal,

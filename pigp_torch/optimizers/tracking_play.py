@@ -174,7 +174,8 @@ class PlayState:
             return y
         hold = torch.where(small, now, y)
         with torch.no_grad():
-            g = self.goal(self.model(torch.stack([y, hold]), self.theta.detach()))
+            theta = self.theta.detach()
+            g = self.goal(self.aim(self.model(torch.stack([y, hold]), theta), theta))
         return hold if bool(g[1] <= g[0] + PLAY_HOLD * self.obs_sd) else y
 
     def tracked(self) -> dict[str, tuple[float, str]]:

@@ -55,6 +55,10 @@ class MachineModel:
         goal_background: optional ``P -> float``, the goal far from the optimum
             :math:`g_\infty(\theta)` where the model knows it (a ring's loss-rate background);
             default ``None``: :func:`prior_from_machine_model` takes the largest goal it samples.
+        beam: optional ``(N x m, P) -> N x m``, the numbers the goal is on from the observables
+            and the unknowns, where an instrument's response is among the unknowns (a screen's
+            resolution blurs the sizes read: the goal is on the beam, not on the reading);
+            default ``None``: the observables are what the goal is on.
 
     Raises:
         ValueError: sizes that do not agree, non-positive half widths, bounds with lower >=
@@ -76,6 +80,7 @@ class MachineModel:
     residual: Callable[[Tensor], Tensor] | None = None
     goal_unit: str | None = None
     goal_background: Callable[[Tensor], float] | None = None
+    beam: Callable[[Tensor, Tensor], Tensor] | None = None
 
     def __post_init__(self) -> None:
         self.knob_names = list(self.knob_names)
@@ -118,8 +123,10 @@ class MachineModel:
         return self.observe(X, theta)
 
     def goal_at(self, X: Tensor, theta: Tensor) -> Tensor:
-        """The goal of the model's observables at ``N x d`` settings (``N``)."""
-        return self.goal(self.observe(X, theta))
+        """The goal of the model's observables at ``N x d`` settings (``N``; through
+        :attr:`beam` where there is one)."""
+        O = self.observe(X, theta)
+        return self.goal(O if self.beam is None else self.beam(O, theta))
 
     def sample_unknowns(self, n: int, seed: int = 0) -> Tensor:
         r"""``n x P`` unknowns drawn uniformly from their ranges (seeded)."""

@@ -101,3 +101,21 @@ def test_the_screen_resolution_unknown_blurs_the_sizes_only():
     mm = ares_machine_model(torch.zeros(4), screen_resolution=4e-5)
     assert mm.unknown_names[-1] == "screen_resolution" and mm.unknown_units[-1] == "m"
     assert mm.unknown_names[-2] == "AREAMQZM3_gain"
+
+
+def test_the_goal_of_a_model_with_a_resolution_is_on_the_beam():
+    """The machine model with ``screen_resolution`` names a ``beam``: the sizes read, deblurred
+    with the fitted r, are the model's sizes without r (the centroids untouched), so the goal
+    (``goal_at``) is the MAE of the beam, not of the blurred reading; without it there is none."""
+    from pigp_torch.machines.ares_ea.methods import ares_machine_model
+
+    X = _settings(4, 2)
+    model, c, _ = ares_model_parts()
+    target = torch.tensor([1e-4, 3e-5, -2e-4, 4e-5], dtype=D)
+    mm = ares_machine_model(target, screen_resolution=4e-5)
+    assert ares_machine_model(target).beam is None
+    theta = torch.cat([c, torch.tensor([1.5e-5], dtype=D)])
+    beam = mm.beam(mm.observe(X, theta), theta)
+    torch.testing.assert_close(beam, model(X, c), rtol=1e-10, atol=1e-15)
+    torch.testing.assert_close(mm.goal_at(X, theta), mm.goal(model(X, c)), rtol=1e-10, atol=0)
+    assert bool((mm.goal(mm.observe(X, theta)) != mm.goal_at(X, theta)).all())

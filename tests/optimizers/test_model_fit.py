@@ -250,3 +250,41 @@ def test_settings_object_and_keywords_build_the_same_optimizer():
     assert (a.obs_sd, a.seed, a.best_from, a.trust) == (1e-3, 7, "model", 0.25)
     with pytest.raises(TypeError, match="local_tol"):
         FittedModelOptimizer(box, obs_sd=1e-3, local_tol=0.1, **parts)
+
+
+def _blurred_model(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """o = sqrt((theta_0 x)^2 + theta_1^2): a size read through a screen of resolution theta_1."""
+    return ((theta[..., :1] * X).square() + theta[..., 1:2].square()).sqrt()
+
+
+def _unblurred(O: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    return (O.square() - theta[..., 1:2].square()).clamp_min(0.0).sqrt()
+
+
+@pytest.mark.parametrize("with_beam", [False, True])
+def test_the_goal_is_on_the_beam_when_the_model_names_one(with_beam):
+    """With ``beam`` the ask puts the beam (the reading deblurred with the fitted resolution) on
+    the target, x = t / theta_0; without it, the reading: x = sqrt(t^2 - r^2) / theta_0."""
+    truth = torch.tensor([2.0, 0.3], dtype=D)
+    t = 0.5
+    bounds = torch.tensor([[0.0], [1.0]], dtype=D)
+    opt = FittedModelOptimizer(
+        bounds,
+        model=_blurred_model,
+        goal=lambda o: ((o[..., 0] - t).square() + 1e-14).sqrt(),
+        residual=lambda o: o - t,
+        beam=_unblurred if with_beam else None,
+        theta_center=torch.tensor([2.0, 0.3], dtype=D),
+        theta_half_width=torch.tensor([0.5, 0.2], dtype=D),
+        obs_sd=1e-6,
+        trust=1.0,
+        maximize=False,
+    )
+    for x in (0.05, 0.1, 0.6, 0.9):  # sizes near and far above the resolution: r is identified
+        x = torch.tensor([x], dtype=D)
+        o = _blurred_model(x[None], truth)[0]
+        opt.tell(x, float((o - t).abs().sum()), observables=o)
+    torch.testing.assert_close(opt.theta, truth, atol=1e-6, rtol=0)
+    x = float(opt.ask()[0])
+    expected = t / 2.0 if with_beam else (t**2 - 0.3**2) ** 0.5 / 2.0
+    assert x == pytest.approx(expected, abs=1e-6)

@@ -185,6 +185,7 @@ def ares_machine_model(
         segment, lattice, quad_gain_half_width, screen_resolution
     )
     res = ("screen_resolution",) if screen_resolution > 0 else ()
+    beam = _deblurred if screen_resolution > 0 else None
     gains = tuple(f"{q}_gain" for q in ARES_CALIBRATED_QUADS)[: len(center) - 16 - len(res)]
     t = torch.as_tensor(target, dtype=DTYPE).reshape(-1)
     if t.shape != (4,):
@@ -203,7 +204,17 @@ def ares_machine_model(
         observe=model,
         goal=smooth_mae(t),
         residual=lambda obs: obs - t,
+        beam=beam,
     )
+
+
+def _deblurred(obs: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    r"""The beam behind the screen's reading (``N x 4``, m): the sizes read
+    :math:`\sqrt{\sigma^2 + r^2}` back to :math:`\sigma` with the fitted resolution :math:`r` (the
+    last unknown); a size read below :math:`r` (a tracked offset can make one) is 0."""
+    r2 = theta[..., -1:].square()
+    size = (obs[..., [1, 3]].square() - r2).clamp_min(1e-24).sqrt()
+    return torch.stack([obs[..., 0], size[..., 0], obs[..., 2], size[..., 1]], -1)
 
 
 def smooth_mae(target: torch.Tensor, eps: float = 0.5e-6):
@@ -248,7 +259,8 @@ def build_ares_physics(
         quad_gain_half_width: half width of the quadrupoles' fitted gains (default 0.05; 0:
             no gains fitted, the 16 unknowns of the incoming beam and misalignments only).
         screen_resolution: the largest screen resolution fitted (m; default 0: none fitted,
-            the sizes read are the beam's; > 0: one more unknown, :func:`ares_model_parts`).
+            the sizes read are the beam's; > 0: one more unknown, :func:`ares_model_parts`,
+            and the asks put the beam behind the blur on the target, not the reading).
         options: :class:`~pigp_torch.optimizers.tracking.TrackingModelOptimizer` options
             (``fallback``: ``"track"`` by default, ``"nm"`` the hand-over).
     """
