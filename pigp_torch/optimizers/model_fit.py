@@ -247,6 +247,10 @@ class FittedModelOptimizer(AskTellOptimizer):
         (``beam``) under the first ``P`` of ``theta`` (a tracker's ``theta`` has more)."""
         return O if self.beam is None else self.beam(O, theta[..., : self.center.numel()])
 
+    def goal_at(self, X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """The model's goal at ``N x d`` settings under ``theta`` (``N``, through :meth:`aim`)."""
+        return self.goal(self.aim(self.model(X, theta), theta))
+
     def tell(self, x, y: float, observables=None) -> None:
         """Record a reading: knobs ``x`` (``d``), scalar ``y`` and the ``m`` observables; refit."""
         if observables is None:
@@ -306,8 +310,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         cache = self._best_cache
         if cache is None or cache[0] != self.n_told or cache[1] is not self._fit_theta:
             with torch.no_grad():
-                O = self.model(torch.stack(self.X), self._fit_theta)
-                g = self.goal(self.aim(O, self._fit_theta))
+                g = self.goal_at(torch.stack(self.X), self._fit_theta)
             g = torch.where(torch.isfinite(g), g, torch.full_like(g, torch.inf))
             self._best_cache = (self.n_told, self._fit_theta, int(g.argmin()))
         i = self._best_cache[2]
@@ -358,7 +361,7 @@ class FittedModelOptimizer(AskTellOptimizer):
         Ze = ((torch.stack(extra) - box[0]) / width.clamp_min(1e-300)).clamp(0.0, 1.0)
         Z = torch.cat([Ze, Z])
         with torch.no_grad():
-            values = self.goal(self.aim(self.model(box[0] + width * Z, theta), theta))
+            values = self.goal_at(box[0] + width * Z, theta)
         values = torch.where(torch.isfinite(values), values, torch.full_like(values, torch.inf))
         order = torch.argsort(values)
         # The N_REFINE best candidates are refined together (one batched evaluation per
@@ -368,7 +371,7 @@ class FittedModelOptimizer(AskTellOptimizer):
             starts = torch.cat([Ze[-1:], starts])
 
         def goal(X: torch.Tensor) -> torch.Tensor:
-            return self.goal(self.aim(self.model(X, theta), theta))
+            return self.goal_at(X, theta)
 
         residual = None
         if self.residual is not None:

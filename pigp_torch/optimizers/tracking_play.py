@@ -174,8 +174,7 @@ class PlayState:
             return y
         hold = torch.where(small, now, y)
         with torch.no_grad():
-            theta = self.theta.detach()
-            g = self.goal(self.aim(self.model(torch.stack([y, hold]), theta), theta))
+            g = self.goal_at(torch.stack([y, hold]), self.theta.detach())
         return hold if bool(g[1] <= g[0] + PLAY_HOLD * self.obs_sd) else y
 
     def tracked(self) -> dict[str, tuple[float, str]]:
