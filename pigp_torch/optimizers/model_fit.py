@@ -53,6 +53,7 @@ goal (``"model"``: with a noisy screen the luckiest reading is not the best sett
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 
@@ -370,9 +371,6 @@ class FittedModelOptimizer(AskTellOptimizer):
         if inside:
             starts = torch.cat([Ze[-1:], starts])
 
-        def goal(X: torch.Tensor) -> torch.Tensor:
-            return self.goal_at(X, theta)
-
         residual = None
         if self.residual is not None:
 
@@ -380,7 +378,7 @@ class FittedModelOptimizer(AskTellOptimizer):
                 return self.residual(self.aim(self.model(X, theta), theta))
 
         X, v = search_in_box(
-            goal,
+            functools.partial(self.goal_at, theta=theta),
             residual,
             box,
             starts,
