@@ -24,7 +24,7 @@ from pigp_torch.simulated_epics import (
     ALARM_SEVERITY_SUFFIX,
 )
 
-from .conftest import FAST
+from .conftest import FAST, NOISE
 from .test_faults_over_ca import fault_at_read, private_locks, with_optimize  # noqa: F401
 from .test_faults_over_ca import write_config as faults_config
 
@@ -163,8 +163,12 @@ def test_an_invalid_reading_is_never_an_evaluation(alarms, probe, ring, tmp_path
         probe.write(ioc.glitch_readings_pv, 1)
         probe.write(alarm_pv(ioc, ALARM_READINGS_SUFFIX), 1)
 
-    config = write_config(tmp_path, ioc, ring, budget=5)
-    with fault_at_read(NOISE_READS + 2 + 1, arm):
+    # The IOC's noise is stated (as in the other fault tests): with it measured from 5 readings
+    # at the start, an estimate far below the true noise (a few runs in a thousand) made the
+    # next evaluation's honest re-reads disagree with each other and end the run (seen once in
+    # CI) -- a property of the measurement, not of the severity rule this test is about.
+    config = write_config(tmp_path, ioc, ring, budget=5, objective_noise=NOISE)
+    with fault_at_read(2 + 1, arm):  # evaluation 1 (read twice), then evaluation 2's first read
         code, captured = run(config, capsys)
     assert code == 0, captured.err
     log = read_log(tmp_path / "run.jsonl")
