@@ -6,7 +6,9 @@ told to the methods that fit them) and scores the TRUE machine at every reading:
 
 * ``ares``: the true MAE (µm) of (mu_x, sigma_x, mu_y, sigma_y) to the target at each reading;
   per run the median over readings 150-299 (``--window``), the final MAE (after the set-back to
-  the method's best) and the best MAE; per method the median over trials of each.
+  the method's best), the best MAE, and the *lucky* MAE: the true MAE at the reading whose
+  *read* MAE (the screen's, noise included) was the lowest -- what a set-back to the luckiest
+  reading gives on a machine that does not drift; per method the median over trials of each.
 * ``spear3``: the gain against the moving optimum, (f_t(x_t) - f_t(0)) / (f_t* - f_t(0)); per run
   its mean over evaluations 100-499, per method the mean over seeds (sigma = 0.04 mA/min).
 
@@ -65,17 +67,32 @@ def ares_run(args) -> dict:
     )
     ctx = RunContext(machine=machine, prior=None, seed=seed + trial, archive_size=0,
                      noise=noise if noise > 0 else None, maximize=machine.maximize)  # fmt: skip
+    read, observed = machine.read, []
+
+    def read_and_keep():  # the screen's numbers of every reading, noise included
+        y = read()
+        observed.append(machine.last_observables.clone())
+        return y
+
+    machine.read = read_and_keep
     t0 = time.perf_counter()
     with torch.random.fork_rng(devices=[]), default_dtype(DTYPE):
         torch.manual_seed(seed + trial)
         _, true = drive(machine, spec.build(ctx), readings)
     mae = ((true - machine.target).abs().mean(-1) * 1e6).numpy()
+    read_mae = ((torch.stack(observed) - machine.target).abs().mean(-1) * 1e6).numpy()
     return {
         "kind": "ares", "method": method, "id": trial, "family": family,
         "window_median": window_statistic(mae[:-1], window, "median"),
-        "final": float(mae[-1]), "best": float(mae[:-1].min()),
-        "series": mae, "seconds": time.perf_counter() - t0,
+        "final": float(mae[-1]), "best": float(mae[:-1].min()), "lucky": lucky(mae, read_mae),
+        "series": mae, "read_series": read_mae, "seconds": time.perf_counter() - t0,
     }  # fmt: skip
+
+
+def lucky(mae, read_mae) -> float:
+    """The true MAE (µm) at the reading, before the set-back (the last one), whose read MAE is the
+    lowest (the first of equal ones)."""
+    return float(mae[:-1][int(np.argmin(read_mae[:-1]))])
 
 
 def spear3_run(args) -> dict:
@@ -141,13 +158,16 @@ def summary_table(runs: list[dict]) -> str:
     r"""Markdown table, one row per method: the median over machines (trials / seeds) of each
     run's score, with the interquartile range in brackets (numpy's linear percentiles).
 
-    ARES: the median true MAE over the window, the final and the best true MAE (µm). SPEAR3: the
-    mean gain over the window and the gain at the last reading (fractions of the moving gain).
+    ARES: the median true MAE over the window, the final and the best true MAE (µm), and the
+    lucky MAE (µm) where every run has it (tables written before it have not). SPEAR3: the mean
+    gain over the window and the gain at the last reading (fractions of the moving gain).
     """
     ares = runs[0]["kind"] == "ares"
     cols = ("window_median", "final", "best") if ares else ("window_mean", "final")
     head = ("median true MAE over window (µm)", "final MAE (µm)", "best MAE (µm)") if ares else (
         "mean gain over window", "gain at the last reading")  # fmt: skip
+    if ares and all("lucky" in r for r in runs):
+        cols, head = (*cols, "lucky"), (*head, "lucky MAE (µm)")
     lines = [f"| method | {'trials' if ares else 'seeds'} | " + " | ".join(head) + " |",
              "|---|---|" + "---|" * len(cols)]  # fmt: skip
     for method in dict.fromkeys(r["method"] for r in runs):
@@ -172,6 +192,8 @@ def runs_from_csv(paths, window: tuple[int, int]) -> list[dict]:
             if ares:
                 run.update(window_median=window_statistic(v[:-1], window, "median"),
                            best=float(v[:-1].min()))  # fmt: skip
+                if "mae_read_um" in df.columns:
+                    run["lucky"] = lucky(v, g.sort_values("reading")["mae_read_um"].to_numpy())
             else:
                 run["window_mean"] = window_statistic(v, window, "mean")
             runs.append(run)
@@ -227,7 +249,11 @@ def main(argv=None) -> int:
         help='the methods\' options as JSON, e.g. \'{"fallback": "track"}\' (ARES) or '
         '\'{"forgetting": {"slopes": [0]}}\' (SPEAR3)',
     )
-    p.add_argument("--csv", default=None, help="per-reading table (method, id, t, value)")
+    p.add_argument(
+        "--csv",
+        default=None,
+        help="per-reading table (method, id, reading, true value; ARES: the read MAE too)",
+    )
     p.add_argument("--summary", action="store_true",
                    help="markdown table: per method the median over machines (IQR)")  # fmt: skip
     p.add_argument("--from-csv", nargs="+", default=None, metavar="CSV",
@@ -260,7 +286,7 @@ def main(argv=None) -> int:
         unit = "um" if ares else "of the gain"
         score = r["window_median"] if ares else r["window_mean"]
         who = f"{r['method']} {'trial' if ares else 'seed'} {r['id']}"
-        best = f", best {r['best']:.3f} {unit}" if ares else ""
+        best = f", best {r['best']:.3f} {unit}, lucky {r['lucky']:.3f} {unit}" if ares else ""
         print(f"{who}: window {score:.3f} {unit}, final {r['final']:.3f} {unit}{best} "
               f"({r['seconds']:.0f} s)", flush=True)  # fmt: skip
         runs.append(r)
@@ -270,9 +296,11 @@ def main(argv=None) -> int:
     if a.summary:
         print(f"\n{summary_table(runs)}")
     if a.csv:
-        rows = [(r["method"], r["id"], t, v) for r in runs for t, v in enumerate(r["series"])]
-        col = "mae_true_um" if ares else "gain"
-        pd.DataFrame(rows, columns=["method", "id", "reading", col]).to_csv(a.csv, index=False)
+        keys = ("series", "read_series") if ares else ("series",)
+        rows = [(r["method"], r["id"], t, *v) for r in runs
+                for t, v in enumerate(zip(*(r[k] for k in keys), strict=True))]  # fmt: skip
+        cols = ["mae_true_um", "mae_read_um"] if ares else ["gain"]
+        pd.DataFrame(rows, columns=["method", "id", "reading", *cols]).to_csv(a.csv, index=False)
     return 0
 
 

@@ -40,12 +40,36 @@ def test_short_ares_run_scores_the_true_beam(bench, tmp_path, capsys):
             "--readings", "12", "--window", "4", "12", "--csv", str(out)]  # fmt: skip
     assert bench.main(argv) == 0
     table = pd.read_csv(out)
-    assert list(table.columns) == ["method", "id", "reading", "mae_true_um"]
+    assert list(table.columns) == ["method", "id", "reading", "mae_true_um", "mae_read_um"]
     assert len(table) == 13  # 12 readings + the set-back
     mae = table["mae_true_um"].to_numpy()
     text = capsys.readouterr().out
     assert f"best {mae[:-1].min():8.1f} um" in text
     assert f"final {mae[-1]:8.1f} um" in text
+    # a noise-free screen reads the true beam: the luckiest reading is the best one
+    assert table["mae_read_um"].to_numpy() == pytest.approx(mae, rel=1e-12)
+    assert f"lucky {mae[:-1].min():.3f} um" in text
+
+
+def test_the_lucky_mae_is_the_true_mae_where_the_read_mae_was_lowest(bench, tmp_path, capsys):
+    """A jittering screen: the reads differ from the true beam, and the lucky MAE is the true
+    MAE of the reading (before the set-back) whose read MAE is the lowest -- printed, and in the
+    summary table rebuilt from the CSV."""
+    out = tmp_path / "jitter.csv"
+    argv = ["ares", "--family", "screen-jitter", "--trials", "1", "--methods", "nelder-mead",
+            "--readings", "15", "--window", "5", "15", "--csv", str(out), "--summary"]  # fmt: skip
+    assert bench.main(argv) == 0
+    text = capsys.readouterr().out
+    table = pd.read_csv(out)
+    true, read = table["mae_true_um"].to_numpy(), table["mae_read_um"].to_numpy()
+    assert np.abs(true - read).max() > 0.1  # µm: the screen's noise
+    expected = true[:-1][np.argmin(read[:-1])]
+    assert f"lucky {expected:.3f} um" in text
+    rows = text[text.index("| method |") :].strip().splitlines()
+    cell = f"| {expected:.1f} ({expected:.1f}–{expected:.1f}) |"  # one trial: no spread
+    assert rows[0].endswith("| lucky MAE (µm) |") and rows[2].endswith(cell)
+    assert bench.main(["ares", "--window", "5", "15", "--from-csv", str(out)]) == 0
+    assert capsys.readouterr().out.strip().splitlines() == rows
 
 
 def test_summary_table_is_the_median_and_iqr_over_trials_and_rebuilds_from_csv(
