@@ -144,8 +144,9 @@ def test_end_to_end_physics_informed_bayesopt(ioc, probe, ring):
 
     A plumbing test, not a benchmark: the prior is built from the exact Hessian of the served
     ring's own fast model, and the method is ``pigp-physics`` (the physics form fitted online,
-    with that prior's shape; cheap acquisition settings). The IOC's noise is not seeded (each
-    reading draws its own), so the budget and margin come from repeated runs over CA: the true
+    with that prior's shape; cheap acquisition settings). The IOC's noise is one seeded sequence
+    (a value per 50 ms refresh) of which a run reads a stretch that depends on timing (on how
+    long the shared IOC has run), so the budget and margin come from repeated runs over CA: the true
     gain of the best-read setting over the start was 0.27-1.14 mA/min after 30 evaluations (10
     runs), 0.03-1.0 after 20 (18 runs) and 0.02-0.9 after 15 (this test's former budget, which
     failed about one run in five); the readings matched their knobs within 3.2 noise sd.
