@@ -181,14 +181,19 @@ def test_the_tracking_optimizer_runs_on_the_ring_model():
         noise_probe=0,  # repeat readings of so fast a drift read it as noise (no tracking)
     )  # fmt: skip
     x = torch.zeros(sim.dim, dtype=D)
-    for t in range(8):
+    # When the check first fails depends on the asks, whose round-off differs between CPUs
+    # (by reading 8 on the machines of earlier runs, at 10 on an AVX-512 AMD EPYC): up to 16
+    # readings, three of them tracked.
+    for t in range(16):
         theta = theta0 + 0.05 * t * model.unknown_half_width
         with torch.no_grad():
             o = model.observe(x[None], theta)[0]
         opt.tell(x, float(-model.goal(o[None])[0]), observables=o)
         x = opt.ask()
         assert bool(((x >= opt.bounds[0]) & (x <= opt.bounds[1])).all())
-    assert opt.tracking
+        if opt.n_tracked >= 3:
+            break
+    assert opt.tracking and opt.n_tracked == 3
     tracked = opt.tracked()
     for name, unit in zip(model.unknown_names, model.unknown_units, strict=True):
         assert tracked[name][1] == unit
