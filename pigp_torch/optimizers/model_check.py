@@ -37,11 +37,9 @@ when the same setting is read again. When :math:`\hat s > s` the fit's noise bec
 :math:`\hat s` and :meth:`best` the setting where the fitted model predicts the best goal
 (``best_from="model"``: with noisy readings the best reading is the luckiest, not the best).
 
-:meth:`recommend` is the setting the evidence supports: :meth:`best` while the model is trusted
-(on noisy readings the optimum of the model refitted with a noise per observable:
-:meth:`CheckedModelOptimizer._weighted_optimum`); after the hand-over on a machine whose
-readings repeat exactly, the best reading; on a noisy one, the visited setting with the best
-posterior mean of a GP on the readings near the best
+:meth:`recommend` is the setting the evidence supports: :meth:`best` while the model is trusted;
+after the hand-over on a machine whose readings repeat exactly, the best reading; on a noisy one,
+the visited setting with the best posterior mean of a GP on the readings near the best
 (:func:`~pigp_torch.optimizers.estimate.posterior_best`).
 
 Why Nelder–Mead by default: a model that stops explaining the readings has usually brought the
@@ -52,7 +50,6 @@ calibration is in docs/results.md).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from collections.abc import Callable
@@ -89,11 +86,6 @@ def nm_fallback(bounds, X, Y, *, maximize: bool, seed: int, size: float = 0.02) 
 
 
 FALLBACKS = {"bo": bo_fallback, "nm": nm_fallback}
-
-#: :meth:`CheckedModelOptimizer.recommend` on noisy readings: the readings it needs for a noise
-#: per observable, the floor of each observable's noise (a fraction of the largest) and the
-#: Levenberg–Marquardt iterations of the weighted fit.
-WEIGHTED_END_MIN, WEIGHTED_SD_FLOOR, WEIGHTED_FIT_ITER = 10, 1e-3, 20
 
 
 def chi2_check(
@@ -254,53 +246,15 @@ class CheckedModelOptimizer(FittedModelOptimizer):
 
     def recommend(self) -> torch.Tensor:
         """The setting the evidence supports (``d``; module docstring): :meth:`best`'s while the
-        model is trusted or the readings repeat exactly, on noisy readings (``best_from="model"``,
-        at least ``WEIGHTED_END_MIN`` readings of several observables) the optimum of the model
-        refitted with each observable's own noise (:meth:`_weighted_optimum`); after the
-        hand-over on noisy readings, the visited setting with the best GP posterior mean
+        model is trusted or the readings repeat exactly; after the hand-over on noisy readings,
+        the visited setting with the best GP posterior mean
         (:func:`~pigp_torch.optimizers.estimate.posterior_best`)."""
         noisy = self.best_from == "model" or bool(self.noise_sd)
-        weighted = len(self.O) >= WEIGHTED_END_MIN and self.O[-1].numel() > 1
-        if self.fallback is None and self.best_from == "model" and weighted:
-            return self._weighted_optimum()
         if self.fallback is None or not noisy:
             return self.best()[0]
         i = posterior_best(torch.stack(self.X), torch.tensor(self.Y, dtype=DTYPE), self.bounds,
                            maximize=self.maximize)  # fmt: skip
         return self.X[i].clone()
-
-    def _weighted_optimum(self) -> torch.Tensor:
-        r"""The model's optimum under each observable's own noise (``d``).
-
-        A screen reads some observables far more precisely than others (beam jitter moves a
-        centroid by micrometres and a size by a fraction of one), and a fit with one noise for
-        all weights the noisiest as much as the most precise. Here each observable's noise is
-        the standard deviation of its residuals over every reading at the current fit,
-        :math:`s_j = \operatorname{sd}_t\,(o_{tj} - M_j(x_t, \hat\theta))`, floored at
-        ``WEIGHTED_SD_FLOOR`` times the largest; the unknowns are refitted by generalized least
-        squares (the model and the readings divided by :math:`s_j`, unit noise, the same prior,
-        warm-started at :math:`\hat\theta`), and the end is the ask under that fit: the
-        model's optimum in the trust region around the measured setting it predicts best. The
-        optimizer's state is left as it was (the ask runs on a shallow copy)."""
-        from pigp_torch.optimizers._least_squares import fit_unknowns
-
-        X, O = torch.stack(self.X), torch.stack(self.O)
-        base = self.model
-        with torch.no_grad():
-            sd = (O - base(X, self.theta)).std(0)
-        sd = sd.clamp_min(WEIGHTED_SD_FLOOR * float(sd.max())).clamp_min(1e-300)
-
-        def whitened(X: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-            return base(X, theta) / sd
-
-        u, _ = fit_unknowns(whitened, X, O / sd, self.center, self.half_width, obs_sd=1.0,
-                            prior_sd=float(self.settings.prior_sd), u0=self.u,
-                            max_iter=WEIGHTED_FIT_ITER)  # fmt: skip
-        end = copy.copy(self)
-        end._probe, end.u = [], u
-        end._fit_theta = end.theta.detach().clone()
-        end._best_cache = end._last_ask = None
-        return end.ask()
 
     def best(self) -> tuple[torch.Tensor, float]:
         """As :meth:`FittedModelOptimizer.best`; the best reading once the fallback has taken
